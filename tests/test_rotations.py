@@ -46,7 +46,9 @@ def test_matrix_and_rotate_match_scipy(q, v):
 def test_exp_log_round_trip_and_scipy(phi):
     q = rot.exp_quat(phi)
     assert np.isclose(np.linalg.norm(q), 1.0)
-    assert np.allclose(rot.quat_normalize(q), rot.quat_normalize(Rotation.from_rotvec(phi).as_quat()))
+    assert np.allclose(
+        rot.quat_normalize(q), rot.quat_normalize(Rotation.from_rotvec(phi).as_quat())
+    )
     assert np.allclose(rot.exp_map(phi), Rotation.from_rotvec(phi).as_matrix(), atol=1e-12)
     # the log returns the angle in [0, pi]; compare as rotations
     back = rot.log_quat(q)
@@ -62,8 +64,11 @@ def test_small_angle_error_state(dtheta):
     # Exp(dtheta) ~ I + [dtheta x] to first order (Hamilton sign)
     R_err = rot.quat_to_matrix(q) @ rot.quat_to_matrix(q_hat).T
     assert np.allclose(R_err, np.eye(3) + rot.skew(dtheta), atol=1e-6)
-    assert np.isclose(rot.quat_angle(rot.quat_multiply(q, rot.quat_conjugate(q_hat))),
-                      np.linalg.norm(dtheta), atol=1e-12)
+    assert np.isclose(
+        rot.quat_angle(rot.quat_multiply(q, rot.quat_conjugate(q_hat))),
+        np.linalg.norm(dtheta),
+        atol=1e-12,
+    )
 
 
 @given(quat4, vec3)

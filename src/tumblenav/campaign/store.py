@@ -1,0 +1,108 @@
+"""Resumable on-disk store of a Monte Carlo campaign: one file per finished run.
+
+Layout of a campaign folder::
+
+    campaign.json          what was asked (scenario, estimator, runs, base seed); checked on resume
+    runs/run_000042.npz    one finished run (errors, NEES, NIS), written atomically
+    runs/run_000042.failed.json   a run that raised: its seed and the error
+    summary.json           written at the end
+
+A run is identified by its index k; its random streams come from
+``SeedSequence(base_seed, spawn_key=(k,))`` (the same as ``SeedSequence(base_seed).spawn(N)[k]``
+for any N > k), so a resumed or enlarged campaign reproduces the same runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tumblenav import io
+from tumblenav.errors import InputError
+from tumblenav.metrics import RunErrors
+
+
+def run_seed(base_seed: int, k: int) -> np.random.SeedSequence:
+    return np.random.SeedSequence(base_seed, spawn_key=(k,))
+
+
+@dataclass(frozen=True)
+class CampaignStore:
+    root: Path
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.root / "runs"
+
+    def run_path(self, k: int) -> Path:
+        return self.runs_dir / f"run_{k:06d}.npz"
+
+    def failed_path(self, k: int) -> Path:
+        return self.runs_dir / f"run_{k:06d}.failed.json"
+
+    def open(self, spec: dict[str, Any]) -> None:
+        """Create the folder, or check that an existing one holds the same campaign."""
+        self.runs_dir.mkdir(parents=True, exist_ok=True)
+        spec_path = self.root / "campaign.json"
+        if spec_path.exists():
+            old = io.read_json(spec_path)
+            keys = ("scenario", "estimator", "base_seed", "scenario_hash")
+            diff = [k for k in keys if old.get(k) != spec.get(k)]
+            if diff:
+                raise InputError(
+                    f"holds a different campaign ({', '.join(diff)} differ); "
+                    "use another output folder",
+                    str(self.root),
+                )
+        io.write_json(spec, spec_path)
+
+    def done(self) -> set[int]:
+        if not self.runs_dir.exists():
+            return set()
+        return {int(p.stem.split("_")[1]) for p in self.runs_dir.glob("run_*.npz")}
+
+    def save_run(self, k: int, seed_entropy: Any, r: RunErrors, extra: dict[str, Any]) -> Path:
+        arrays = {f"err_{key}": v for key, v in r.errors.items()}
+        arrays.update(
+            t=r.t,
+            nees=r.nees,
+            nees_dof=np.array(r.nees_dof),
+            nis=r.nis,
+            nis_dof=r.nis_dof,
+            k=np.array(k),
+        )
+        for key, v in extra.items():
+            arrays[f"extra_{key}"] = np.asarray(v)
+        path = self.run_path(k)
+
+        def _write(tmp: Path) -> None:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+
+        out = io._atomic(path, _write)
+        self.failed_path(k).unlink(missing_ok=True)
+        return out
+
+    def save_failure(self, k: int, base_seed: int, error: str) -> None:
+        io.write_json(
+            {"run": k, "base_seed": base_seed, "spawn_key": [k], "error": error},
+            self.failed_path(k),
+        )
+
+    def failures(self) -> list[dict[str, Any]]:
+        return [io.read_json(p) for p in sorted(self.runs_dir.glob("run_*.failed.json"))]
+
+    def load_run(self, k: int) -> RunErrors:
+        with np.load(self.run_path(k)) as z:
+            errors = {key[4:]: z[key] for key in z.files if key.startswith("err_")}
+            return RunErrors(
+                t=z["t"],
+                errors=errors,
+                nees=z["nees"],
+                nees_dof=int(z["nees_dof"]),
+                nis=z["nis"],
+                nis_dof=z["nis_dof"],
+            )

@@ -1,0 +1,200 @@
+"""The one estimator interface, the state layout and the registry.
+
+An estimator turns a run's measurements into an :class:`EstimateHistory`: the nominal state
+and the error-state covariance at every measurement time, with a :class:`StateLayout` that
+names the blocks, so that metrics, plots and files never index by magic numbers.
+
+Inside, estimators are written as pure steps on frozen beliefs
+(``predict(belief, dt) -> belief``, ``update(belief, z) -> belief``); the public entry point
+is ``run(scenario, measurements, rng)``. An estimator may also offer
+``run_batch(scenario, [measurements...], [rng...])`` that runs many Monte Carlo runs at once
+(vectorised); the campaign runner uses it when present.
+
+Standard block names (the metrics know them):
+
+========== ====== ====== ===============================================================
+name       nom.   err.   meaning
+========== ====== ====== ===============================================================
+attitude   4      3      q_TI [x,y,z,w]; error dtheta with q = exp(dtheta) (x) q_hat
+rate       3      3      omega_TI_T (rad/s)
+inertia    k      k      inertia parameters (estimator-specific parametrisation, e.g. Hu's p)
+position   3      3      r_L (m): target mass centre relative to the chaser, in L
+velocity   3      3      v_L (m/s)
+features   3N     3N     feature points in T (m)
+offset     3      3      mass-centre offset b (m), Yu 2019
+========== ====== ====== ===============================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Block:
+    name: str
+    kind: Literal["quat", "vector"]
+    size: int  # error-state size (3 for a quaternion)
+
+    @property
+    def nominal_size(self) -> int:
+        return 4 if self.kind == "quat" else self.size
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Names, kinds and slices of the nominal state and of the error state."""
+
+    blocks: tuple[Block, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(b.size for b in self.blocks)
+
+    @property
+    def nominal_dim(self) -> int:
+        return sum(b.nominal_size for b in self.blocks)
+
+    def _offsets(self, nominal: bool) -> dict[str, slice]:
+        out, i = {}, 0
+        for b in self.blocks:
+            n = b.nominal_size if nominal else b.size
+            out[b.name] = slice(i, i + n)
+            i += n
+        return out
+
+    def err(self, name: str) -> slice:
+        """Slice of block ``name`` in the error state / covariance."""
+        return self._offsets(False)[name]
+
+    def nom(self, name: str) -> slice:
+        """Slice of block ``name`` in the nominal state."""
+        return self._offsets(True)[name]
+
+    def names(self) -> list[str]:
+        return [b.name for b in self.blocks]
+
+    def block(self, name: str) -> Block:
+        return next(b for b in self.blocks if b.name == name)
+
+    def boxminus(self, x: Array, x_hat: Array) -> Array:
+        """Error state ``x [-] x_hat`` (..., dim): quaternion blocks by the log of
+        ``q (x) conj(q_hat)``, vector blocks by subtraction (Hu 2024 eq. 26-27)."""
+        parts = []
+        for b in self.blocks:
+            s = self.nom(b.name)
+            if b.kind == "quat":
+                parts.append(rot.boxminus(x[..., s], x_hat[..., s]))
+            else:
+                parts.append(x[..., s] - x_hat[..., s])
+        return np.concatenate(parts, axis=-1)
+
+    def boxplus(self, x_hat: Array, dx: Array) -> Array:
+        """Nominal state ``x_hat [+] dx`` (Hu 2024 eq. 43-44)."""
+        parts = []
+        for b in self.blocks:
+            s, e = self.nom(b.name), self.err(b.name)
+            if b.kind == "quat":
+                parts.append(rot.boxplus(x_hat[..., s], dx[..., e]))
+            else:
+                parts.append(x_hat[..., s] + dx[..., e])
+        return np.concatenate(parts, axis=-1)
+
+
+@dataclass(frozen=True)
+class Belief:
+    """Mean (nominal state) and error-state covariance at time ``t``; immutable."""
+
+    t: float
+    x: Array
+    P: Array
+    layout: StateLayout
+
+
+@dataclass
+class EstimateHistory:
+    """What one estimator run returns.
+
+    t : (n,) s; x : (n, nominal_dim); P : (n, dim, dim) error-state covariance.
+    nis : (n,) normalised innovation squared of each update (NaN where no update);
+    nis_dof : (n,) its degrees of freedom (0 where no update).
+    skipped : counts of measurements skipped and why (NaN, one camera only, ...).
+    info : estimator-specific extras (e.g. the DPACF frame definition) for evaluation.
+    """
+
+    t: Array
+    x: Array
+    P: Array
+    layout: StateLayout
+    nis: Array
+    nis_dof: Array
+    skipped: dict[str, int] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def block(self, name: str) -> Array:
+        return self.x[:, self.layout.nom(name)]
+
+    def sigma(self, name: str) -> Array:
+        s = self.layout.err(name)
+        return np.sqrt(np.maximum(np.diagonal(self.P[:, s, s], axis1=1, axis2=2), 0.0))
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    name: str
+    needs: str  # what measurements it consumes, for `tumblenav estimators`
+    description: str
+
+    def run(
+        self, scenario: Any, measurements: Any, rng: np.random.Generator
+    ) -> EstimateHistory: ...
+
+    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
+        """The true nominal state (n, nominal_dim) in this estimator's conventions and frame,
+        so that ``layout.boxminus(truth_state, x)`` is the estimation error."""
+        ...
+
+
+_REGISTRY: dict[str, Callable[[], Estimator]] = {}
+
+
+def register(name: str) -> Callable[[Callable[[], Estimator]], Callable[[], Estimator]]:
+    def deco(factory: Callable[[], Estimator]) -> Callable[[], Estimator]:
+        _REGISTRY[name] = factory
+        return factory
+
+    return deco
+
+
+def _load_builtin() -> None:
+    # Importing the modules registers their estimators.
+    from tumblenav.estimators import ekf_dpacf  # noqa: F401
+
+
+def available() -> dict[str, Estimator]:
+    _load_builtin()
+    return {n: f() for n, f in sorted(_REGISTRY.items())}
+
+
+def get(name: str) -> Estimator:
+    _load_builtin()
+    if name not in _REGISTRY:
+        raise InputError(
+            f"unknown estimator '{name}' (available: {', '.join(sorted(_REGISTRY))})", "--estimator"
+        )
+    return _REGISTRY[name]()
+
+
+def check_names(names: Sequence[str]) -> None:
+    for n in names:
+        get(n)

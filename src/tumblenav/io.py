@@ -1,0 +1,111 @@
+"""File formats: NetCDF through xarray (truth, measurements, estimates) and JSON summaries.
+
+Every write is atomic: the data go to a temporary file in the destination folder, which is
+then renamed over the target (``os.replace``), so an interrupted run never leaves a
+half-written file behind and an existing good file is never lost.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from tumblenav.errors import InputError
+
+FORMAT_VERSION = "1"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _atomic(path: Path, write: Callable[[Path], None]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the usual permissions
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
+    """Write ``ds`` to NetCDF-4 atomically (compressed float variables)."""
+    ds = ds.copy()
+    ds.attrs.setdefault("tumblenav_format", FORMAT_VERSION)
+    encoding = {
+        name: {"zlib": True, "complevel": 4}
+        for name, var in ds.data_vars.items()
+        if var.dtype.kind in "fiu" and var.ndim > 0
+    }
+
+    def _write(tmp: Path) -> None:
+        ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
+
+    return _atomic(Path(path), _write)
+
+
+def read_netcdf(path: str | Path, required: tuple[str, ...] = ()) -> xr.Dataset:
+    """Open a tumblenav NetCDF file fully into memory; InputError if missing or malformed."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", str(path))
+    try:
+        with xr.open_dataset(path, engine="netcdf4") as ds:
+            ds = ds.load()
+    except Exception as exc:  # netCDF4/HDF5 raise many types for a bad file
+        raise InputError(
+            f"not a readable NetCDF file ({exc.__class__.__name__})", str(path)
+        ) from None
+    missing = [v for v in required if v not in ds.variables]
+    if missing:
+        raise InputError(f"missing variable(s) {', '.join(missing)}", str(path))
+    return ds
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def write_json(obj: Any, path: str | Path) -> Path:
+    """Write JSON atomically; NaN/inf become null (valid JSON)."""
+    text = json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n"
+
+    def _write(tmp: Path) -> None:
+        tmp.write_text(text, encoding="utf-8")
+
+    return _atomic(Path(path), _write)
+
+
+def read_json(path: str | Path) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("file not found", str(path)) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", str(path)) from None

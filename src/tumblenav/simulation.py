@@ -1,0 +1,392 @@
+"""Truth and sensor simulation for a scenario: the first two stages of the pipeline.
+
+``simulate(scenario, seed)`` returns a :class:`Truth` and, for a stereo sensor, a
+:class:`StereoMeasurements`; both convert to self-describing xarray datasets (``truth.nc``,
+``measurements.nc``; see docs/formats.md).
+
+Random streams: one ``SeedSequence`` per run is split into independent children for the
+feature geometry, the truth and the sensor noise, so that changing the noise level of a
+scenario keeps the same geometry and trajectory (common random numbers when estimators or
+noise levels are compared head to head).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+from numpy.typing import NDArray
+
+from tumblenav import dynamics, sensors
+from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+from tumblenav.frames import lvlh_axes
+from tumblenav.scenario import RandomFeatures, Scenario, StereoSensorConfig
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Truth:
+    """True motion, sampled at the scenario's times.
+
+    Attributes
+    ----------
+    t : (n,) s
+    q_TI, omega_TI_T : (n,4), (n,3) rad/s -- target attitude (maps I into T) and rate in T.
+    r_L, v_L : (n,3) m, m/s -- target mass centre relative to the chaser, in L (rotating).
+    q_LI : (n,4) -- LVLH attitude (maps I into L); identity when the chaser has no orbit.
+    q_CL : (n,4) -- stereo rig attitude (maps L into the rig frame C).
+    chaser_r_I, chaser_v_I : (n,3) -- chaser inertial state (zeros without an orbit).
+    features_T : (N,3) m; normals_T : (N,3) -- feature points and outward normals in T.
+    inertia_T : (3,3) kg m^2 in T; mass_centre_offset_T : (3,) m.
+    """
+
+    t: Array
+    q_TI: Array
+    omega_TI_T: Array
+    r_L: Array
+    v_L: Array
+    q_LI: Array
+    q_CL: Array
+    chaser_r_I: Array
+    chaser_v_I: Array
+    features_T: Array
+    normals_T: Array
+    inertia_T: Array
+    mass_centre_offset_T: Array
+
+    @property
+    def R_LT(self) -> Array:
+        """(n,3,3): maps T into L."""
+        return rot.quat_to_matrix(self.q_LI) @ np.swapaxes(rot.quat_to_matrix(self.q_TI), -1, -2)
+
+    @property
+    def q_CI(self) -> Array:
+        """(n,4): rig attitude w.r.t. inertial (known to the chaser; Hu 2024 eq. 31)."""
+        return rot.quat_multiply(self.q_CL, self.q_LI)
+
+    @property
+    def features_L(self) -> Array:
+        """(n,N,3) m: feature positions relative to the chaser, in L (Hu 2024 eq. 32)."""
+        return self.r_L[:, None, :] + np.einsum("tij,nj->tni", self.R_LT, self.features_T)
+
+    @property
+    def features_C(self) -> Array:
+        """(n,N,3) m: feature positions in the rig frame C (rig origin at the chaser CM)."""
+        R_CL = rot.quat_to_matrix(self.q_CL)
+        return np.einsum("tij,tnj->tni", R_CL, self.features_L)
+
+    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
+        n_feat = self.features_T.shape[0]
+        ds = xr.Dataset(
+            {
+                "q_TI": (("time", "quat"), self.q_TI, _a("1", "target attitude, maps I into T")),
+                "omega_TI_T": (
+                    ("time", "xyz"),
+                    self.omega_TI_T,
+                    _a("rad/s", "rate of T wrt I, in T"),
+                ),
+                "r_L": (("time", "xyz"), self.r_L, _a("m", "target CM relative to chaser, in L")),
+                "v_L": (("time", "xyz"), self.v_L, _a("m/s", "relative velocity in rotating L")),
+                "q_LI": (("time", "quat"), self.q_LI, _a("1", "LVLH attitude, maps I into L")),
+                "q_CL": (
+                    ("time", "quat"),
+                    self.q_CL,
+                    _a("1", "stereo rig attitude, maps L into C"),
+                ),
+                "chaser_r_I": (("time", "xyz"), self.chaser_r_I, _a("m", "chaser position in I")),
+                "chaser_v_I": (("time", "xyz"), self.chaser_v_I, _a("m/s", "chaser velocity in I")),
+                "features_T": (("feature", "xyz"), self.features_T, _a("m", "feature points in T")),
+                "normals_T": (("feature", "xyz"), self.normals_T, _a("1", "feature normals in T")),
+                "inertia_T": (("row", "col"), self.inertia_T, _a("kg m^2", "inertia in T")),
+                "mass_centre_offset_T": (
+                    ("xyz",),
+                    self.mass_centre_offset_T,
+                    _a("m", "CM offset b"),
+                ),
+            },
+            coords={
+                "time": ("time", self.t, {"units": "s"}),
+                "quat": ["x", "y", "z", "w"],
+                "xyz": ["x", "y", "z"],
+                "feature": np.arange(n_feat),
+            },
+            attrs={
+                "title": "tumblenav truth",
+                "scenario": scenario_name,
+                "quaternion_convention": "[x,y,z,w], Hamilton; q_AB maps B-coordinates into A",
+                "frames": "I inertial; L LVLH (x along-track, y -orbit normal, z nadir); "
+                "C stereo rig (x baseline, y boresight); T target principal axes",
+            },
+        )
+        return ds
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> Truth:
+        g = {k: np.asarray(ds[k].values, dtype=float) for k in ds.data_vars}
+        return cls(t=np.asarray(ds["time"].values, dtype=float), **g)
+
+
+@dataclass(frozen=True)
+class StereoMeasurements:
+    """Raw stereo pixel measurements (what the cameras give) plus the chaser's own knowledge.
+
+    uv : (n, 2, N, 2) px -- [time, camera (0 left, 1 right), feature, (u, v)], NaN if unseen.
+    observed : (n, 2, N) bool -- explicit visibility mask.
+    q_CL : (n, 4) -- rig attitude (known to the chaser); q_LI : (n, 4) -- LVLH attitude.
+    """
+
+    t: Array
+    uv: Array
+    observed: NDArray[np.bool_]
+    q_CL: Array
+    q_LI: Array
+    rig: sensors.StereoRig
+    noise_px: float
+
+    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
+        rig = self.rig
+        cams = (rig.left, rig.right)
+        return xr.Dataset(
+            {
+                "uv": (
+                    ("time", "camera", "feature", "pixel"),
+                    self.uv,
+                    _a("px", "image coordinates; NaN where unobserved"),
+                ),
+                "observed": (
+                    ("time", "camera", "feature"),
+                    self.observed.astype(np.int8),
+                    _a("1", "1 if the feature is measured by that camera"),
+                ),
+                "q_CL": (
+                    ("time", "quat"),
+                    self.q_CL,
+                    _a("1", "rig attitude, maps L into C (known)"),
+                ),
+                "q_LI": (
+                    ("time", "quat"),
+                    self.q_LI,
+                    _a("1", "LVLH attitude, maps I into L (known)"),
+                ),
+                "R_CkC": (
+                    ("camera", "row", "col"),
+                    np.stack([c.R_CkC for c in cams]),
+                    _a("1", "rig frame into camera frame"),
+                ),
+                "p_CkinC": (
+                    ("camera", "xyz"),
+                    np.stack([c.p_CkinC for c in cams]),
+                    _a("m", "camera centre in rig frame"),
+                ),
+                "focal_px": (
+                    ("camera",),
+                    np.array([c.focal_px for c in cams]),
+                    _a("px", "focal length"),
+                ),
+                "principal_point_px": (
+                    ("camera", "pixel"),
+                    np.array([c.principal_point_px for c in cams], dtype=float),
+                    _a("px", "principal point"),
+                ),
+                "resolution_px": (
+                    ("camera", "pixel"),
+                    np.array([c.resolution_px for c in cams], dtype=float),
+                    _a("px", "image size"),
+                ),
+            },
+            coords={
+                "time": ("time", self.t, {"units": "s"}),
+                "camera": ["left", "right"],
+                "feature": np.arange(self.uv.shape[2]),
+                "pixel": ["u", "v"],
+                "quat": ["x", "y", "z", "w"],
+                "xyz": ["x", "y", "z"],
+            },
+            attrs={
+                "title": "tumblenav stereo measurements",
+                "scenario": scenario_name,
+                "rig": rig.kind,
+                "baseline_m": rig.baseline_m,
+                "noise_px": self.noise_px,
+                "camera_model": "pinhole; camera axes x right, y optical axis, z = x cross y; "
+                "u = cu + f x/y, v = cv + f z/y",
+            },
+        )
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
+        cams = []
+        for k in range(2):
+            cams.append(
+                sensors.Camera(
+                    focal_px=float(ds["focal_px"].values[k]),
+                    principal_point_px=tuple(float(x) for x in ds["principal_point_px"].values[k]),
+                    resolution_px=tuple(int(x) for x in ds["resolution_px"].values[k]),
+                    R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
+                    p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
+                )
+            )
+        rig = sensors.StereoRig(
+            left=cams[0], right=cams[1], kind=str(ds.attrs.get("rig", "parallel"))
+        )
+        return cls(
+            t=np.asarray(ds["time"].values, dtype=float),
+            uv=np.asarray(ds["uv"].values, dtype=float),
+            observed=np.asarray(ds["observed"].values).astype(bool),
+            q_CL=np.asarray(ds["q_CL"].values, dtype=float),
+            q_LI=np.asarray(ds["q_LI"].values, dtype=float),
+            rig=rig,
+            noise_px=float(ds.attrs.get("noise_px", np.nan)),
+        )
+
+
+def _a(units: str, description: str) -> dict[str, str]:
+    return {"units": units, "description": description}
+
+
+# --- the pieces ------------------------------------------------------------------------------
+
+
+def run_streams(seed: int | np.random.SeedSequence) -> dict[str, np.random.Generator]:
+    """Independent generators for one run: 'features', 'truth', 'sensor', 'estimator'."""
+    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    names = ("features", "truth", "sensor", "estimator")
+    return {n: np.random.default_rng(c) for n, c in zip(names, ss.spawn(len(names)), strict=True)}
+
+
+def draw_features(scenario: Scenario, rng: np.random.Generator) -> tuple[Array, Array]:
+    """Feature points (N,3) in T and their outward normals (N,3)."""
+    f = scenario.target.features_T_m
+    if f is None:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    if isinstance(f, RandomFeatures):
+        g = np.random.default_rng(f.seed) if f.seed is not None else rng
+        pts = g.uniform(f.low_m, f.high_m, size=(f.count, 3))
+    else:
+        pts = np.asarray(f, dtype=float)
+    if scenario.target.feature_normals_T is not None:
+        nrm = np.asarray(scenario.target.feature_normals_T, dtype=float)
+    else:
+        nrm = pts.copy()  # default: radial from the mass centre (a convex, roughly round body)
+    norms = np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm = np.where(norms > 1e-12, nrm / np.where(norms > 1e-12, norms, 1.0), [[0.0, 1.0, 0.0]])
+    return pts, nrm
+
+
+def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Truth:
+    """Torque-free attitude (Euler + kinematics) and nonlinear relative orbit, both tight."""
+    t = scenario.times
+    tg = scenario.target
+    inertia = tg.inertia_matrix
+    q_TI, omega = dynamics.propagate_attitude(
+        np.asarray(tg.q0_TI, float), np.asarray(tg.omega0_T_rad_s, float), inertia, t
+    )
+    orbit = scenario.chaser.orbit
+    n = len(t)
+    if orbit is None:
+        # Kabir 2025 Sec. 2.1: chaser inertially fixed, no gravity: L = I, force-free drift.
+        r_L = np.asarray(tg.r0_L_m, float) + np.outer(t, tg.v0_L_m_s)
+        v_L = np.broadcast_to(np.asarray(tg.v0_L_m_s, float), (n, 3)).copy()
+        q_LI = np.tile(rot.IDENTITY, (n, 1))
+        cr, cv = np.zeros((n, 3)), np.zeros((n, 3))
+    else:
+        r0, v0 = dynamics.circular_orbit_state(
+            orbit.radius_m,
+            np.radians(orbit.inclination_deg),
+            np.radians(orbit.raan_deg),
+            np.radians(orbit.arg_latitude_deg),
+            orbit.mu_m3_s2,
+        )
+        rel = dynamics.nonlinear_relative(
+            r0, v0, np.asarray(tg.r0_L_m, float), np.asarray(tg.v0_L_m_s, float), t, j2=orbit.j2
+        )
+        r_L, v_L = np.asarray(rel.r_L), np.asarray(rel.v_L)
+        cr, cv = np.asarray(rel.chaser_r_I), np.asarray(rel.chaser_v_I)
+        q_LI = rot.matrix_to_quat(np.swapaxes(lvlh_axes(cr, cv), -1, -2))
+    if scenario.chaser.attitude == "target-pointing":
+        R_LC = sensors.target_pointing_R_LC(r_L)
+    else:
+        R_LC = np.broadcast_to(scenario.chaser.R_LC_fixed, (n, 3, 3))
+    q_CL = rot.matrix_to_quat(np.swapaxes(R_LC, -1, -2))
+    feats, normals = draw_features(scenario, rng_features)
+    return Truth(
+        t=t,
+        q_TI=q_TI,
+        omega_TI_T=omega,
+        r_L=r_L,
+        v_L=v_L,
+        q_LI=q_LI,
+        q_CL=q_CL,
+        chaser_r_I=cr,
+        chaser_v_I=cv,
+        features_T=feats,
+        normals_T=normals,
+        inertia_T=inertia,
+        mass_centre_offset_T=np.asarray(tg.mass_centre_offset_T_m, float),
+    )
+
+
+def make_rig(cfg: StereoSensorConfig) -> sensors.StereoRig:
+    res = (int(cfg.resolution_px[0]), int(cfg.resolution_px[1]))
+    if cfg.rig == "parallel":
+        return sensors.parallel_rig(cfg.focal_px, cfg.baseline_m, res, cfg.principal_point)
+    return sensors.convergent_rig(
+        cfg.focal_px, cfg.baseline_m, np.radians(cfg.toe_in_deg), res, cfg.principal_point
+    )
+
+
+def visibility(scenario: Scenario, truth: Truth, rig: sensors.StereoRig) -> NDArray[np.bool_]:
+    """(n, 2, N) occlusion mask (True = not occluded) from the scenario's occlusion settings."""
+    occ = scenario.occlusion
+    t = truth.t
+    n, N = len(t), truth.features_T.shape[0]
+    vis = np.ones((n, 2, N), dtype=bool)
+    sched = sensors.scheduled_mask(t, [(w.start_s, w.end_s) for w in occ.windows])
+    vis &= sched[:, None, None]
+    if occ.loss_from_s is not None:
+        vis &= sensors.loss_from_mask(t, occ.loss_from_s)[:, None, None]
+    if occ.self_occlusion:
+        R_CL = rot.quat_to_matrix(truth.q_CL)
+        n_C = np.einsum("tij,tjk,nk->tni", R_CL, truth.R_LT, truth.normals_T)
+        centres = np.stack([rig.left.p_CkinC, rig.right.p_CkinC])
+        vis &= sensors.self_occlusion_mask(truth.features_C, n_C, centres)
+    return vis
+
+
+def simulate_stereo(
+    scenario: Scenario, truth: Truth, rng_sensor: np.random.Generator
+) -> StereoMeasurements:
+    cfg = scenario.sensor
+    if not isinstance(cfg, StereoSensorConfig):
+        raise InputError(f"scenario {scenario.name} has a {cfg.kind} sensor, not a stereo rig")
+    rig = make_rig(cfg)
+    noise_px = cfg.noise.sigma_px(cfg.focal_px)
+    meas = sensors.measure(
+        rig, truth.features_C, rng_sensor, noise_px, visible=visibility(scenario, truth, rig)
+    )
+    return StereoMeasurements(
+        t=truth.t,
+        uv=meas.uv,
+        observed=meas.observed,
+        q_CL=truth.q_CL,
+        q_LI=truth.q_LI,
+        rig=rig,
+        noise_px=noise_px,
+    )
+
+
+def simulate(
+    scenario: Scenario, seed: int | np.random.SeedSequence | None = None
+) -> tuple[Truth, StereoMeasurements | None]:
+    """Truth and measurements of one run; ``seed`` defaults to the scenario's base seed."""
+    streams = run_streams(scenario.montecarlo.seed if seed is None else seed)
+    truth = simulate_truth(scenario, streams["features"])
+    meas = (
+        simulate_stereo(scenario, truth, streams["sensor"])
+        if scenario.sensor.kind == "stereo"
+        else None
+    )
+    return truth, meas
