@@ -1,0 +1,382 @@
+"""Stereo feature points -> measurements for the Hu 2024 filter, batched over Monte Carlo runs.
+
+From raw pixel tracks (:class:`tumblenav.simulation.StereoMeasurements`) of B runs that share a
+rig and a time grid, this front end computes, for every run and epoch:
+
+1. triangulated feature points in the rig frame C and in L, with their first-order
+   covariances (Hu 2024 eq. 1 corrected; two-ray triangulation for a convergent rig);
+2. the photogrammetric frame G (Hu 2024 eq. 6-7) from the best-conditioned triplet at the first
+   epoch with three features, kept through occlusions by rigid alignment of any >= 3 visible
+   features whose G coordinates are known (weighted Kabsch), with the covariance of its
+   attitude;
+3. the angular rate of G relative to I (Hu 2024 eq. 15-16) from a local linear fit of the G
+   attitude over +-h epochs (the chaser's rotation removed through the known R_CI);
+4. the least-squares identification of the normalised inertia and angular momentum
+   (Hu 2024 eq. 9-14), accumulated over time (growing batch). Beyond the paper, each epoch is
+   weighted by the inverse variance of its rate, so far-away (noisy) epochs do not spoil it;
+5. the unique principal-axis frame (DPACF, Hu 2024 eq. 17) and the attitude measurement
+   ``q_TI = q_TG (x) q_GI`` (Hu 2024 eq. 31) with a first-order covariance: eigenvector
+   perturbation of the identified inertia plus the G attitude noise.
+
+All arrays have leading shape (B, n) (runs, epochs); unavailable values are NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav import rotations as rot
+from tumblenav.frontends.inertia import inertia_design, principal_frame
+from tumblenav.frontends.photogrammetric import g_frame_from_points
+from tumblenav.frontends.triangulation import triangulate_parallel, triangulate_two_ray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FrontEndSettings:
+    rate_half_window: int = 5  # epochs on each side of the local rate fit
+    min_ls_epochs: int = 20  # epochs of rate data before the inertia is trusted
+    max_condition: float = 1e8  # of the column-scaled normal equations
+    min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
+
+
+@dataclass
+class PointsFrontEnd:
+    t: Array
+    p_L: Array  # (B,n,N,3) m
+    cov_L: Array  # (B,n,N,3,3) m^2
+    usable: NDArray[np.bool_]  # (B,n,N)
+    R_GI: Array  # (B,n,3,3)
+    cov_G: Array  # (B,n,3,3) rad^2, G attitude error in G
+    omega_G: Array  # (B,n,3) rad/s, rate of G wrt I in G
+    template_G: Array  # (B,N,3) m, feature coordinates in G
+    known: NDArray[np.bool_]  # (B,N)
+    R_GT: Array  # (B,n,3,3) DPACF principal frame (NaN until identified)
+    moments: Array  # (B,n,3) principal moments / lambda_1
+    q_TI: Array  # (B,n,4) DPACF attitude measurement
+    cov_TI: Array  # (B,n,3,3)
+    skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
+
+
+def triangulate(meas_list) -> tuple[Array, Array, NDArray[np.bool_], dict[str, Array]]:
+    """Points (B,n,N,3) in C, covariances, usable mask, skip counts, for B runs of one rig."""
+    uv = np.stack([m.uv for m in meas_list])  # (B,n,2,N,2)
+    obs = np.stack([m.observed for m in meas_list])  # (B,n,2,N)
+    rig = meas_list[0].rig
+    sigma = meas_list[0].noise_px
+
+    def tri(uvl: Array, uvr: Array) -> Array:
+        if rig.kind == "parallel":
+            L = rig.left
+            return triangulate_parallel(uvl, uvr, L.focal_px, rig.baseline_m, L.principal_point_px)
+        L, R = rig.left, rig.right
+        return triangulate_two_ray(
+            uvl,
+            uvr,
+            (L.focal_px, R.focal_px),
+            (L.principal_point_px, R.principal_point_px),
+            L.R_CkC,
+            L.p_CkinC,
+            R.R_CkC,
+            R.p_CkinC,
+        )
+
+    uvl, uvr = uv[:, :, 0], uv[:, :, 1]
+    p = tri(uvl, uvr)
+    both = obs[:, :, 0] & obs[:, :, 1]
+    finite = np.all(np.isfinite(p), axis=-1)
+    usable = both & finite
+    # First-order covariance by central differences over the four pixel coordinates: works
+    # for any rig (the closed form of triangulation_covariance covers the parallel one only).
+    h = 1e-3
+    J = np.empty(p.shape + (4,))
+    for k in range(4):
+        d = np.zeros(4)
+        d[k] = h
+        dl, dr = d[:2], d[2:]
+        J[..., k] = (tri(uvl + dl, uvr + dr) - tri(uvl - dl, uvr - dr)) / (2 * h)
+    cov = sigma**2 * np.einsum("...ik,...jk->...ij", J, J)
+    usable &= np.all(np.isfinite(cov), axis=(-1, -2))
+    p = np.where(usable[..., None], p, np.nan)
+    skipped = {
+        "one_camera_only": np.sum(obs[:, :, 0] ^ obs[:, :, 1], axis=(1, 2)),
+        "bad_triangulation": np.sum(both & ~usable, axis=(1, 2)),
+    }
+    return p, cov, usable, skipped
+
+
+def weighted_kabsch(
+    p_C: Array, g_G: Array, w: Array
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """Rigid alignment ``p_C ~ R_CG g_G + o_C`` (weighted least squares), batched.
+
+    p_C, g_G : (B,K,3); w : (B,K) weights (0 = not used). Returns R_GC (B,3,3), o_C (B,3),
+    the information-form covariance of the G attitude error (in G, rad^2), and a validity
+    mask (>= 3 non-collinear points).
+    """
+    W = w[..., None]
+    sw = np.sum(w, axis=-1)
+    ok = (np.sum(w > 0, axis=-1) >= 3) & (sw > 0)
+    sw_safe = np.where(sw > 0, sw, 1.0)
+    pc = np.sum(W * np.nan_to_num(p_C), axis=1) / sw_safe[:, None]
+    gc = np.sum(W * np.nan_to_num(g_G), axis=1) / sw_safe[:, None]
+    a = np.where(W > 0, np.nan_to_num(p_C) - pc[:, None], 0.0)
+    b = np.where(W > 0, np.nan_to_num(g_G) - gc[:, None], 0.0)
+    Hm = np.einsum("bk,bki,bkj->bij", w, b, a)  # sum w g p^T
+    U, S, Vt = np.linalg.svd(Hm)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.zeros_like(Hm)
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(d == 0, 1.0, d)
+    R_CG = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    ok &= S[:, 1] > 1e-9 * np.maximum(S[:, 0], 1e-300)  # not collinear
+    o = pc - np.einsum("bij,bj->bi", R_CG, gc)
+    # Information of a small rotation of the lever arms a_i (C frame): sum w [a x]^T [a x].
+    A = rot.skew(a)
+    info = np.einsum("bk,bkji,bkjl->bil", w, A, A)
+    R_GC = np.swapaxes(R_CG, -1, -2)
+    eye = np.eye(3)
+    info = np.where(ok[:, None, None], info, eye)
+    cov_C = np.linalg.inv(info + 1e-12 * eye)
+    cov_G = R_GC @ cov_C @ np.swapaxes(R_GC, -1, -2)
+    return R_GC, o, cov_G, ok
+
+
+def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDArray[np.bool_]]:
+    """Per run, the visible triplet with the largest smallest-altitude; (B,3) indices."""
+    B, N, _ = p.shape
+    trip = np.array(list(combinations(range(N), 3))) if N >= 3 else np.zeros((0, 3), int)
+    if len(trip) > 4000:  # many features: search among the 30 farthest from the centroid
+        c = np.nanmean(p, axis=1, keepdims=True)
+        dist = np.where(usable, np.linalg.norm(p - c, axis=-1), -1.0)
+        far = np.argsort(-dist, axis=1)[:, :30]
+        sub = np.take_along_axis(p, far[..., None], axis=1)
+        subu = np.take_along_axis(usable, far, axis=1)
+        idx, ok = _best_triplet_batch(sub, subu)
+        return np.take_along_axis(far, idx, axis=1), ok
+    m1, m2, m3 = p[:, trip[:, 0]], p[:, trip[:, 1]], p[:, trip[:, 2]]
+    area2 = np.linalg.norm(np.cross(m2 - m1, m3 - m1), axis=-1)
+    longest = np.maximum.reduce(
+        [
+            np.linalg.norm(m2 - m1, axis=-1),
+            np.linalg.norm(m3 - m1, axis=-1),
+            np.linalg.norm(m3 - m2, axis=-1),
+        ]
+    )
+    score = np.where(
+        np.all(usable[:, trip], axis=-1), area2 / np.where(longest > 0, longest, 1), -1
+    )
+    score = np.nan_to_num(score, nan=-1.0)
+    best = np.argmax(score, axis=1)
+    return trip[best], score[np.arange(B), best] > 1e-6
+
+
+def photogrammetric_frames(
+    p_C: Array, cov_C: Array, usable: NDArray[np.bool_]
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3) and its mask."""
+    B, n, N, _ = p_C.shape
+    R_GC = np.full((B, n, 3, 3), np.nan)
+    cov_G = np.full((B, n, 3, 3), np.nan)
+    template = np.full((B, N, 3), np.nan)
+    known = np.zeros((B, N), dtype=bool)
+    has_G = np.zeros(B, dtype=bool)
+    w_all = np.where(usable, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
+    for k in range(n):
+        u = usable[:, k]
+        # define G (Hu 2024 eq. 6-7) where it is not defined yet and 3 features are visible
+        new = ~has_G & (u.sum(axis=1) >= 3)
+        if new.any():
+            idx, okt = _best_triplet_batch(p_C[new, k], u[new])
+            runs = np.flatnonzero(new)[okt]
+            idx = idx[okt]
+            if len(runs):
+                pk = p_C[runs, k]
+                m = [pk[np.arange(len(runs)), idx[:, j]] for j in range(3)]
+                Rg = g_frame_from_points(m[0], m[1], m[2])
+                g = np.einsum("bij,bkj->bki", Rg, pk - m[0][:, None])
+                template[runs] = np.where(u[runs][..., None], g, np.nan)
+                known[runs] = u[runs]
+                has_G[runs] = True
+        active = has_G & ((u & known).sum(axis=1) >= 3)
+        if not active.any():
+            continue
+        w = np.where(u & known, w_all[:, k], 0.0)[active]
+        Rgc, o, cg, ok = weighted_kabsch(p_C[active, k], template[active], w)
+        runs = np.flatnonzero(active)[ok]
+        R_GC[runs, k] = Rgc[ok]
+        cov_G[runs, k] = cg[ok]
+        # features seen for the first time get their G coordinates from the recovered G
+        fresh = u[runs] & ~known[runs]
+        if fresh.any():
+            g = np.einsum("bij,bkj->bki", Rgc[ok], p_C[runs, k] - o[ok][:, None])
+            template[runs] = np.where(fresh[..., None], g, template[runs])
+            known[runs] |= fresh
+    return R_GC, cov_G, template, known
+
+
+def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, Array]:
+    """Rate of G w.r.t. I in G, by a least-squares linear fit of the rotation vectors
+    ``log(R_GI(k+j) R_GI(k)^T) = -j dt omega`` over ``j = -h..h`` (Hu 2024 eq. 15-16 uses a
+    numerical derivative; the symmetric fit cancels the second-order term and averages the
+    attitude noise). Returns omega (B,n,3) and its per-axis variance (B,n)."""
+    B, n = R_GI.shape[:2]
+    q = rot.matrix_to_quat(_finite_or_identity(R_GI))
+    valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
+    num = np.zeros((B, n, 3))
+    good = valid.copy()
+    for j in range(1, h + 1):
+        for s in (+1, -1):
+            shifted = np.roll(q, -s * j, axis=1)
+            vshift = np.roll(valid, -s * j, axis=1)
+            if s > 0:
+                vshift[:, n - j :] = False
+            else:
+                vshift[:, :j] = False
+            phi = rot.log_quat(rot.quat_multiply(shifted, rot.quat_conjugate(q)))
+            num += s * j * phi
+            good &= vshift
+    sjj = 2.0 * sum(j * j for j in range(1, h + 1))
+    omega = -num / (dt * sjj)
+    var_psi = np.trace(np.nan_to_num(cov_G), axis1=-2, axis2=-1) / 3.0
+    var = 2.0 * var_psi / (dt**2 * sjj)
+    omega = np.where(good[..., None], omega, np.nan)
+    return omega, np.where(good, var, np.nan)
+
+
+def _finite_or_identity(R: Array) -> Array:
+    """Rotation stacks with the unavailable (non-finite) entries replaced by the identity."""
+    bad = ~np.all(np.isfinite(R), axis=(-1, -2))
+    return np.where(bad[..., None, None], np.eye(3), R)
+
+
+def _inertia_from_l(l: Array) -> Array:
+    """Normalised inertia in G from l = [Iyy, Izz, Ixy, Ixz, Iyz] (Ixx = 1), Hu 2024 eq. 9."""
+    one = np.ones(l.shape[:-1])
+    return np.stack(
+        [
+            np.stack([one, l[..., 2], l[..., 3]], -1),
+            np.stack([l[..., 2], l[..., 0], l[..., 4]], -1),
+            np.stack([l[..., 3], l[..., 4], l[..., 1]], -1),
+        ],
+        -2,
+    )
+
+
+_E = np.zeros((5, 3, 3))  # d I_G / d l_j
+_E[0, 1, 1] = _E[1, 2, 2] = 1.0
+_E[2, 0, 1] = _E[2, 1, 0] = 1.0
+_E[3, 0, 2] = _E[3, 2, 0] = 1.0
+_E[4, 1, 2] = _E[4, 2, 1] = 1.0
+
+
+def identify_and_dpacf(
+    omega_G: Array,
+    var_w: Array,
+    R_GI: Array,
+    cov_G: Array,
+    s: FrontEndSettings,
+    delay: int = 0,
+) -> tuple[Array, Array, Array, Array]:
+    """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
+    attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance."""
+    B, n = omega_G.shape[:2]
+    ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
+    a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
+    w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
+    N = np.cumsum(w[..., None, None] * np.einsum("...ki,...kj->...ij", a, a), axis=1)
+    r = np.cumsum(w[..., None] * np.einsum("...ki,...k->...i", a, b), axis=1)
+    bb = np.cumsum(w * np.einsum("...k,...k->...", b, b), axis=1)
+    cnt = np.cumsum(ok, axis=1)
+    if delay > 0:
+        # causality: the rate at epoch j uses attitudes up to j + h, so epoch k may only use
+        # the least-squares sums up to k - h
+        N, r, bb, cnt = (
+            np.concatenate([np.zeros_like(x[:, :delay]), x[:, :-delay]], axis=1)
+            for x in (N, r, bb, cnt)
+        )
+    d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
+    Ns = N / (d[..., :, None] * d[..., None, :])
+    ev = np.linalg.eigvalsh(Ns)
+    cond = ev[..., -1] / np.maximum(ev[..., 0], 1e-300)
+    valid = (cnt >= s.min_ls_epochs) & (cond < s.max_condition)
+    eye8 = np.eye(8)
+    Nreg = np.where(valid[..., None, None], Ns, eye8)
+    Ninv_s = np.linalg.inv(Nreg)
+    Ninv = Ninv_s / (d[..., :, None] * d[..., None, :])
+    X = np.einsum("...ij,...j->...i", Ninv, r)
+    rss = bb - 2 * np.einsum("...i,...i->...", X, r) + np.einsum("...i,...ij,...j->...", X, N, X)
+    dof = np.maximum(3 * cnt - 8, 1)
+    s2 = np.maximum(rss / dof, 1e-30)
+    cov_l = s2[..., None, None] * Ninv[..., :5, :5]
+    I_G = _inertia_from_l(X[..., :5])
+    lam = np.linalg.eigvalsh(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
+    lam = lam[..., ::-1]
+    gaps = np.minimum(lam[..., 0] - lam[..., 1], lam[..., 1] - lam[..., 2]) / np.abs(lam[..., 0])
+    physical = (lam[..., 2] > 0) & (lam[..., 1] + lam[..., 2] >= lam[..., 0] * (1 - 1e-3))
+    valid &= (gaps > s.min_eigengap) & physical
+    R_GT = principal_frame(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
+    # Eigenvector perturbation: rotation error of T relative to G, in T (derivation in docs).
+    r1, r2, r3 = R_GT[..., :, 0], R_GT[..., :, 1], R_GT[..., :, 2]
+    l1, l2, l3 = lam[..., 0], lam[..., 1], lam[..., 2]
+    Jphi = np.stack(
+        [
+            np.einsum("...i,jik,...k->...j", r3, _E, r2) / (l2 - l3)[..., None],
+            -np.einsum("...i,jik,...k->...j", r3, _E, r1) / (l1 - l3)[..., None],
+            np.einsum("...i,jik,...k->...j", r2, _E, r1) / (l1 - l2)[..., None],
+        ],
+        -2,
+    )  # (...,3,5)
+    cov_phi = Jphi @ cov_l @ np.swapaxes(Jphi, -1, -2)
+    R_TG = np.swapaxes(R_GT, -1, -2)
+    R_TI = R_TG @ _finite_or_identity(R_GI)
+    cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
+    q_TI = rot.matrix_to_quat(R_TI)
+    meas_ok = valid & np.all(np.isfinite(R_GI), axis=(-1, -2))
+    q_TI = np.where(meas_ok[..., None], q_TI, np.nan)
+    cov_TI = np.where(meas_ok[..., None, None], cov_TI, np.nan)
+    R_GT = np.where(valid[..., None, None], R_GT, np.nan)
+    moments = np.where(valid[..., None], lam / lam[..., :1], np.nan)
+    return R_GT, moments, q_TI, cov_TI
+
+
+def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
+    """Run the whole front end on B runs (same rig, same time grid)."""
+    s = settings or FrontEndSettings()
+    t = meas_list[0].t
+    dt = float(np.median(np.diff(t)))
+    p_C, cov_C, usable, skipped = triangulate(meas_list)
+    R_CL = rot.quat_to_matrix(np.stack([m.q_CL for m in meas_list]))  # (B,n,3,3)
+    R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
+    R_LC = np.swapaxes(R_CL, -1, -2)
+    p_L = np.einsum("bnij,bnkj->bnki", R_LC, p_C)
+    cov_L = np.einsum("bnij,bnkjl,bnml->bnkim", R_LC, cov_C, R_LC)
+    R_GC, cov_G, template, known = photogrammetric_frames(p_C, cov_C, usable)
+    R_GI = R_GC @ R_CL @ R_LI
+    skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
+    omega_G, var_w = rates_from_G(R_GI, cov_G, dt, s.rate_half_window)
+    R_GT, moments, q_TI, cov_TI = identify_and_dpacf(
+        omega_G, var_w, R_GI, cov_G, s, delay=s.rate_half_window
+    )
+    return PointsFrontEnd(
+        t=t,
+        p_L=p_L,
+        cov_L=cov_L,
+        usable=usable,
+        R_GI=R_GI,
+        cov_G=cov_G,
+        omega_G=omega_G,
+        template_G=template,
+        known=known,
+        R_GT=R_GT,
+        moments=moments,
+        q_TI=q_TI,
+        cov_TI=cov_TI,
+        skipped=skipped,
+    )

@@ -1,0 +1,525 @@
+"""Front-ends of Hu 2024 Sec. 2.1 / 3: triangulation, frame G, rates, inertia, DPACF."""
+
+import itertools
+import warnings
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
+
+from tumblenav import rotations as rot
+from tumblenav.frontends import (
+    InertiaAccumulator,
+    InertiaIdentification,
+    accumulate,
+    best_triplet,
+    features_in_G,
+    g_frame_from_points,
+    identify_inertia,
+    inertia_design,
+    inertia_ratios,
+    principal_frame,
+    principal_moments,
+    rate_from_attitudes,
+    recover_G,
+    solve,
+    triangulate_parallel,
+    triangulate_two_ray,
+    triangulation_covariance,
+    triplet_score,
+)
+
+F_PX = 1000.0
+B_M = 0.5
+PP = np.array([640.0, 480.0])
+
+
+def project(p_inCk, f=F_PX, pp=PP):
+    """Pinhole projection with the optical axis on y: u = cu + f x/y, v = cv + f z/y."""
+    p = np.asarray(p_inCk, float)
+    return np.stack([pp[0] + f * p[..., 0] / p[..., 1], pp[1] + f * p[..., 2] / p[..., 1]], -1)
+
+
+def stereo_pixels(p_inC, f=F_PX, b=B_M, pp=PP):
+    return project(p_inC, f, pp), project(p_inC - np.array([b, 0.0, 0.0]), f, pp)
+
+
+def angle_between(R1, R2):
+    return float(np.linalg.norm(rot.log_map(R1 @ np.swapaxes(R2, -1, -2))))
+
+
+def random_rotation(seed):
+    return Rotation.random(random_state=seed).as_matrix()
+
+
+# --------------------------------------------------------------------------- triangulation
+
+
+def test_parallel_triangulation_inverts_projection_vectorised():
+    rng = np.random.default_rng(1)
+    p = np.stack(
+        [rng.uniform(-2, 2, (4, 5)), rng.uniform(3, 40, (4, 5)), rng.uniform(-2, 2, (4, 5))], -1
+    )
+    uv_l, uv_r = stereo_pixels(p)
+    out = triangulate_parallel(uv_l, uv_r, F_PX, B_M, PP)
+    assert out.shape == (4, 5, 3)
+    assert np.allclose(out, p, rtol=1e-12, atol=1e-12)
+
+
+def test_parallel_triangulation_invalid_gives_nan_without_warnings():
+    uv_l = np.array([[700.0, 500.0], [700.0, 500.0], [700.0, 500.0], [np.nan, 500.0]])
+    uv_r = np.array([[700.0, 500.0], [710.0, 500.0], [650.0, np.nan], [650.0, 500.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = triangulate_parallel(uv_l, uv_r, F_PX, B_M, PP)
+    # zero disparity, negative disparity -> NaN; v_r unused -> finite; NaN u_l -> NaN
+    assert np.all(np.isnan(out[[0, 1, 3]]))
+    assert np.all(np.isfinite(out[2]))
+    assert not np.any(np.isinf(out))
+
+
+def test_two_ray_equals_parallel_formula_on_parallel_rig():
+    rng = np.random.default_rng(2)
+    p = np.stack([rng.uniform(-2, 2, 50), rng.uniform(3, 30, 50), rng.uniform(-2, 2, 50)], -1)
+    uv_l, uv_r = stereo_pixels(p)
+    uv_l = uv_l + rng.normal(0, 0.5, uv_l.shape)  # noisy u; v_r := v_l keeps rays coplanar
+    uv_r = uv_r + rng.normal(0, 0.5, uv_r.shape)
+    uv_r[:, 1] = uv_l[:, 1]
+    eye = np.eye(3)
+    two = triangulate_two_ray(uv_l, uv_r, F_PX, PP, eye, np.zeros(3), eye, [B_M, 0, 0])
+    par = triangulate_parallel(uv_l, uv_r, F_PX, B_M, PP)
+    assert np.allclose(two, par, rtol=1e-10, atol=1e-10)
+
+
+def test_two_ray_toed_in_rig_exact_geometry_and_failures():
+    rng = np.random.default_rng(3)
+    toe = np.deg2rad(4.0)
+    # Camera frames: left yawed towards +x, right towards -x (about the rig z axis),
+    # plus small arbitrary misalignments; R_CkC maps rig into camera coordinates.
+    R_ClC = rot.exp_map([0.01, -0.02, -toe]).T
+    R_CrC = rot.exp_map([-0.015, 0.01, toe]).T
+    p_l, p_r = np.array([0.0, 0.0, 0.0]), np.array([0.8, 0.02, -0.01])
+    f = (1000.0, 1100.0)
+    pp = ((640.0, 480.0), (650.0, 470.0))
+    p = np.stack([rng.uniform(-1, 2, 40), rng.uniform(4, 25, 40), rng.uniform(-1, 1, 40)], -1)
+    uv_l = project((p - p_l) @ R_ClC.T, f[0], np.array(pp[0]))
+    uv_r = project((p - p_r) @ R_CrC.T, f[1], np.array(pp[1]))
+    out = triangulate_two_ray(uv_l, uv_r, f, pp, R_ClC, p_l, R_CrC, p_r)
+    assert np.allclose(out, p, rtol=1e-10, atol=1e-10)
+
+    # Point behind both cameras: its projections exist but the rays meet behind -> NaN.
+    behind = np.array([0.3, -6.0, 0.2])
+    ub_l = project((behind - p_l) @ R_ClC.T, f[0], np.array(pp[0]))
+    ub_r = project((behind - p_r) @ R_CrC.T, f[1], np.array(pp[1]))
+    # Parallel rays (parallel rig, zero disparity) -> NaN; NaN input -> NaN.
+    eye = np.eye(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        nb = triangulate_two_ray(ub_l, ub_r, f, pp, R_ClC, p_l, R_CrC, p_r)
+        npar = triangulate_two_ray(
+            [700, 500], [700, 500], F_PX, PP, eye, [0, 0, 0], eye, [B_M, 0, 0]
+        )
+        nnan = triangulate_two_ray(
+            [np.nan, 500], [690, 500], F_PX, PP, eye, [0, 0, 0], eye, [B_M, 0, 0]
+        )
+    assert np.all(np.isnan(nb)) and np.all(np.isnan(npar)) and np.all(np.isnan(nnan))
+
+
+def test_triangulation_inverts_the_sensor_model_of_tumblenav_sensors_stereo():
+    """Same conventions as tumblenav.sensors.stereo (R_CkC, p_CkinC, u = cu + f x/y)."""
+    stereo = pytest.importorskip("tumblenav.sensors.stereo")
+    rng = np.random.default_rng(12)
+    p = np.stack([rng.uniform(-1, 1, 30), rng.uniform(8, 30, 30), rng.uniform(-1, 1, 30)], -1)
+    rig = stereo.chang2021_rig()  # convergent, 10 deg toe-in
+    uv, _ = stereo.project(rig, p)
+    L, R = rig.cameras
+    out = triangulate_two_ray(
+        uv[0], uv[1], (L.focal_px, R.focal_px), (L.principal_point_px, R.principal_point_px),
+        L.R_CkC, L.p_CkinC, R.R_CkC, R.p_CkinC,
+    )  # fmt: skip
+    assert np.allclose(out, p, rtol=1e-10, atol=1e-10)
+    prig = stereo.parallel_rig(1000.0, 0.5, (1280, 960))
+    uv, _ = stereo.project(prig, p)
+    pp = prig.left.principal_point_px
+    assert np.allclose(triangulate_parallel(uv[0], uv[1], 1000.0, 0.5, pp), p, rtol=1e-12)
+
+
+def test_triangulation_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(4)
+    p = np.array([0.8, 10.0, -0.5])
+    sigma = 0.3
+    uv_l, uv_r = stereo_pixels(p)
+    n = 40000
+    noisy_l = uv_l + rng.normal(0, sigma, (n, 2))
+    noisy_r = uv_r + rng.normal(0, sigma, (n, 2))
+    samples = triangulate_parallel(noisy_l, noisy_r, F_PX, B_M, PP)
+    mc = np.cov(samples.T)
+    pred = triangulation_covariance(p, sigma, F_PX, B_M)
+    assert pred.shape == (3, 3)
+    # depth std sqrt(2) y^2 sigma / (f b)
+    assert np.isclose(np.sqrt(pred[1, 1]), np.sqrt(2) * 100 * sigma / (F_PX * B_M))
+    sd = np.sqrt(np.diag(pred))
+    assert np.allclose(np.sqrt(np.diag(mc)), sd, rtol=0.03)
+    corr_mc = mc / np.outer(np.sqrt(np.diag(mc)), np.sqrt(np.diag(mc)))
+    corr_pred = pred / np.outer(sd, sd)
+    assert np.allclose(corr_mc, corr_pred, atol=0.03)
+    # vectorised: (2, 3) points and per-point sigma -> (2, 3, 3)
+    assert triangulation_covariance(np.stack([p, 2 * p]), [0.3, 0.5], F_PX, B_M).shape == (2, 3, 3)
+
+
+# ----------------------------------------------------------------------- photogrammetric
+
+
+def test_g_frame_definition_and_rigid_invariance():
+    rng = np.random.default_rng(5)
+    p_B = rng.normal(size=(3, 3))  # three features in some body frame
+    R_CB = np.stack([random_rotation(s) for s in range(6)])  # (6, 3, 3) over time
+    o = rng.normal(size=(6, 3)) + [0, 10, 0]
+    m = np.einsum("tij,kj->tki", R_CB, p_B) + o[:, None, :]
+    R_GC = g_frame_from_points(m[:, 0], m[:, 1], m[:, 2])
+    assert R_GC.shape == (6, 3, 3)
+    assert np.allclose(R_GC @ np.swapaxes(R_GC, 1, 2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R_GC), 1.0)
+    p_G = features_in_G(m, R_GC, m[:, 0])
+    # m1 at the origin, m2 on +x_G, m3 in the x-y plane with y > 0 (Hu 2024 eq. 6-7)
+    assert np.allclose(p_G[:, 0], 0, atol=1e-12)
+    assert np.allclose(p_G[:, 1, 1:], 0, atol=1e-12) and np.all(p_G[:, 1, 0] > 0)
+    assert np.allclose(p_G[:, 2, 2], 0, atol=1e-12) and np.all(p_G[:, 2, 1] > 0)
+    # G is target-fixed: R_GB = R_GC R_CB constant, G coordinates constant.
+    assert np.allclose(R_GC @ R_CB, (R_GC @ R_CB)[0], atol=1e-12)
+    assert np.allclose(p_G, p_G[0], atol=1e-12)
+    # collinear -> NaN
+    bad = g_frame_from_points([0, 0, 0], [1, 1, 1], [2, 2, 2])
+    assert np.all(np.isnan(bad))
+
+
+def test_best_triplet_prefers_wide_well_conditioned_triangle_and_respects_visibility():
+    pts = np.array(
+        [
+            [0.0, 10.0, 0.0],
+            [5.0, 10.0, 0.0],
+            [10.0, 10.0, 0.05],  # nearly collinear with 0, 1
+            [5.0, 10.0, 3.0],
+            [np.nan, np.nan, np.nan],
+        ]
+    )
+    # scores (smallest altitude): (0,2,3) 2.97 m > (0,1,3) 2.57 m ~ (1,2,3) > (0,1,2) ~0
+    assert best_triplet(pts) == (0, 2, 3)  # m1 m2 = longest side
+    assert best_triplet(pts, np.array([True, True, False, True, True])) == (0, 3, 1)
+    with pytest.raises(ValueError):  # only two usable
+        best_triplet(pts, np.array([True, False, False, True, True]))
+    with pytest.raises(ValueError):
+        best_triplet(np.array([[0, 5, 0], [1, 5, 0], [2, 5, 0.0]]))
+    # random clouds: the winner maximises the score over all triplets (also with the
+    # candidate pre-selection above max_candidates)
+    rng = np.random.default_rng(11)
+    cloud = rng.normal(size=(12, 3)) + [0, 10, 0]
+    combos = list(itertools.combinations(range(12), 3))
+    scores = [triplet_score(*cloud[list(c)]) for c in combos]
+    assert set(best_triplet(cloud)) == set(combos[int(np.argmax(scores))])
+    big = rng.normal(size=(200, 3))
+    i, j, k = best_triplet(big)  # searches the 40 outermost points only
+    assert triplet_score(big[i], big[j], big[k]) > 4.0  # global max 4.51, median 1.03
+
+
+def test_recover_G_after_reselection_equals_original():
+    rng = np.random.default_rng(6)
+    p_B = rng.uniform(-1.5, 1.5, (8, 3))
+    R0, R1 = random_rotation(10), random_rotation(11)
+    o0, o1 = np.array([0.2, 12.0, -0.3]), np.array([-0.5, 9.0, 0.4])
+    p0 = p_B @ R0.T + o0
+    p1 = p_B @ R1.T + o1
+    i, j, k = best_triplet(p0)
+    R_GC0 = g_frame_from_points(p0[i], p0[j], p0[k])
+    catalogue = features_in_G(p0, R_GC0, p0[i])
+    # truth at epoch 1: the same three (now partly occluded) features define G
+    R_GC1_true = g_frame_from_points(p1[i], p1[j], p1[k])
+    visible = np.ones(8, bool)
+    visible[[i, j]] = False  # two of the defining features are occluded
+    new = best_triplet(p1, visible)
+    assert not {i, j} & set(new)
+    idx = np.flatnonzero(visible)
+    R_GC1, origin1 = recover_G(p1[idx], catalogue, idx)
+    assert np.allclose(R_GC1, R_GC1_true, atol=1e-12)
+    assert np.allclose(origin1, p1[i], atol=1e-12)  # origin = occluded m1
+    assert np.isclose(np.linalg.det(R_GC1), 1.0)
+    # from exactly the 3 features of the new triplet only
+    res3 = recover_G(p1[list(new)], catalogue[list(new)])
+    assert angle_between(res3.R_GC, R_GC1_true) < 1e-12 and res3.n_features == 3
+    # noisy features: small error, residual of the order of the noise
+    noisy = recover_G(p1[idx] + rng.normal(0, 1e-3, (len(idx), 3)), catalogue, idx)
+    assert angle_between(noisy.R_GC, R_GC1_true) < 3e-3
+    assert 2e-4 < noisy.residual_rms_m < 2e-3
+    with pytest.raises(ValueError):
+        recover_G(p1[:2], catalogue[:2])
+
+
+def constant_rate_attitudes(w_G, R0, t):
+    """R_GI(t) = Exp(-w t) R0: constant rate w of G w.r.t. I, in G (dR/dt = -[w x] R)."""
+    return rot.exp_map(-np.outer(t, w_G)) @ R0
+
+
+@pytest.mark.parametrize("method, tol", [("geodesic", 1e-10), ("quaternion", 2e-4)])
+def test_rate_constant_rotation_and_rotating_camera(method, tol):
+    t = np.arange(0.0, 40.0, 0.1)
+    w_G = np.array([0.12, -0.25, 0.3])  # 0.41 rad/s: > 2 pi in 40 s, quaternion sign flips
+    R_GI = constant_rate_attitudes(w_G, random_rotation(20), t)
+    est = rate_from_attitudes(R_GI, t, None, method=method)
+    rel = np.max(np.linalg.norm(est - w_G, axis=1)) / np.linalg.norm(w_G)
+    assert rel < tol
+    # rotating camera: R_GC = R_GI R_IC, chaser rotation removed with R_CI
+    R_CI = constant_rate_attitudes(np.array([0.0, 0.05, -0.02]), random_rotation(21), t)
+    R_GC = R_GI @ np.swapaxes(R_CI, 1, 2)
+    est_c = rate_from_attitudes(R_GC, t, R_CI, method=method)
+    assert np.max(np.linalg.norm(est_c - w_G, axis=1)) / np.linalg.norm(w_G) < tol
+    # ignoring the camera rotation would be wrong by ~the camera rate
+    wrong = rate_from_attitudes(R_GC, t, None, method=method)
+    assert np.max(np.linalg.norm(wrong - w_G, axis=1)) > 0.01
+
+
+def test_quaternion_rate_formula_is_hamilton_form_of_hu_eq15():
+    rng = np.random.default_rng(7)
+    q = rot.quat_normalize(rng.normal(size=4))
+    w = rng.normal(size=3)
+    q_dot = rot.quat_derivative(q, w)
+    qv, qw = q[:3], q[3]
+    xi_h = np.vstack([rot.skew(qv) - qw * np.eye(3), qv])
+    assert np.allclose(2.0 * xi_h.T @ q_dot, w, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- inertia
+
+I_T = np.diag([8.0, 5.0, 4.0])
+
+
+@lru_cache(maxsize=1)
+def torque_free(t_end=20.0, dt=0.1, seed=30):
+    """Torque-free tumbling of I_T, w0 = (0.1, 0.1, 0.1) rad/s: (t, omega_T, R_TI)."""
+    q0 = rot.quat_normalize(Rotation.random(random_state=seed).as_quat())
+    inv = np.linalg.inv(I_T)
+
+    def rhs(_, y):
+        w, q = y[:3], y[3:]
+        return np.concatenate([-inv @ np.cross(w, I_T @ w), rot.quat_derivative(q, w)])
+
+    t = np.arange(0.0, t_end + 1e-9, dt)
+    sol = solve_ivp(rhs, (0, t_end), np.r_[0.1, 0.1, 0.1, q0], t_eval=t, rtol=1e-12, atol=1e-14)
+    return t, sol.y[:3].T, rot.quat_to_matrix(sol.y[3:].T)
+
+
+def tumbling_in_G(R_GT):
+    t, w_T, R_TI = torque_free()
+    I_G = R_GT @ I_T @ R_GT.T
+    h_I = np.einsum("tji,tj->ti", R_TI, w_T @ I_T)  # R_IT I_T w_T
+    assert np.allclose(h_I, h_I[0], atol=1e-10)  # conserved
+    return t, w_T @ R_GT.T, R_GT @ R_TI, I_G, h_I[0]
+
+
+def test_design_rows_encode_euler_momentum_equation():
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(3, 3))
+    I = A @ A.T + 3 * np.eye(3)
+    I_bar = I / I[0, 0]
+    H = rng.normal(size=3)
+    w = rng.normal(size=(5, 3))
+    R = np.stack([random_rotation(s) for s in range(5)])
+    a, b = inertia_design(w, R)
+    X = np.r_[I_bar[1, 1], I_bar[2, 2], I_bar[0, 1], I_bar[0, 2], I_bar[1, 2], H]
+    assert a.shape == (5, 3, 8) and b.shape == (5, 3)
+    assert np.allclose(a @ X - b, w @ I_bar.T - R @ H, atol=1e-12)
+
+
+def test_identify_inertia_exact_batch_and_online():
+    R_GT = random_rotation(31)
+    t, w_G, R_GI, I_G, h_I = tumbling_in_G(R_GT)
+    est = identify_inertia(w_G, R_GI)
+    assert np.max(np.abs(est.I_bar_G - I_G / I_G[0, 0])) < 1e-6
+    assert np.max(np.abs(est.H_I - h_I / I_G[0, 0])) < 1e-6
+    assert est.residual_rms < 1e-8 and np.isfinite(est.condition_number)
+    assert est.is_physical and est.I_bar_G[0, 0] == 1.0
+    # online: frame by frame normal equations give the batch result
+    ident = InertiaIdentification()
+    conds = []
+    for k in range(len(t)):
+        ident.update(w_G[k], R_GI[k])
+        if k in (0, 10, 50, 200):
+            conds.append(ident.estimate().condition_number)
+    online = ident.estimate()
+    assert np.isinf(conds[0])  # one epoch: 3 equations, 8 unknowns
+    assert conds[1] > conds[2] > conds[3]  # becomes better conditioned as the rate moves
+    assert np.allclose(online.I_bar_G, est.I_bar_G, atol=1e-9)
+    assert np.allclose(online.H_I, est.H_I, atol=1e-9)
+    assert np.isclose(online.condition_number, est.condition_number, rtol=1e-6)
+    # functional form, accumulating in two batches
+    st_ = accumulate(accumulate(None, w_G[:100], R_GI[:100]), w_G[100:], R_GI[100:])
+    assert np.allclose(solve(st_).I_bar_G, est.I_bar_G, atol=1e-9)
+    assert isinstance(st_, InertiaAccumulator) and st_.n_epochs == len(t)
+    # DPACF on identified vs true inertia: same frame; it is one of the 24 candidates of R_GT
+    R_hat = principal_frame(est.I_bar_G)
+    R_true = principal_frame(I_G)
+    assert angle_between(R_hat, R_true) < 1e-6
+    S = R_GT.T @ R_true
+    assert np.allclose(np.abs(S), np.eye(3), atol=1e-9)  # diag(8,5,4) is already ordered
+    assert np.allclose(principal_moments(est.I_bar_G), [1.0, 5 / 8, 4 / 8], atol=1e-6)
+    assert np.allclose(
+        inertia_ratios(principal_moments(est.I_bar_G)),
+        [(5 - 4) / 8, (4 - 8) / 5, (8 - 5) / 4],
+        atol=1e-6,
+    )
+
+
+def test_identify_inertia_degrades_gracefully_with_rate_noise():
+    R_GT = random_rotation(32)
+    _, w_G, R_GI, I_G, h_I = tumbling_in_G(R_GT)
+    truth = I_G / I_G[0, 0]
+    rng = np.random.default_rng(9)
+    errs, angs = [], []
+    for sigma in (1e-5, 1e-4, 1e-3):
+        est = identify_inertia(w_G + rng.normal(0, sigma, w_G.shape), R_GI)
+        errs.append(np.max(np.abs(est.I_bar_G - truth)))
+        angs.append(angle_between(principal_frame(est.I_bar_G), principal_frame(I_G)))
+        assert 0.3 * sigma < est.residual_rms < 3 * sigma
+    assert errs[0] < 1e-3 and errs[1] < 1e-2 and errs[2] < 0.1
+    assert errs[0] < errs[1] < errs[2]
+    assert angs[0] < 1e-3 and angs[2] < 0.1
+
+
+def test_not_identifiable_reports_infinite_condition():
+    # pure spin about a principal axis: the rate never moves in G
+    R = np.stack([rot.exp_map([0.0, 0.0, -0.2 * k]) for k in range(50)])
+    w = np.tile([0.0, 0.0, 0.2], (50, 1))
+    est = identify_inertia(w, R)
+    assert not np.isfinite(est.condition_number) and np.all(np.isnan(est.I_bar_G))
+    assert np.isinf(identify_inertia(w[:2], R[:2]).condition_number)
+
+
+def test_pipeline_pixels_to_principal_frame_with_occlusion_and_rotating_chaser():
+    """pixels -> eq. 1 -> G (eq. 6-7, kept through occlusion) -> rate (eq. 15) -> LS -> DPACF."""
+    t, w_T, R_TI = torque_free()
+    rng = np.random.default_rng(10)
+    p_T = rng.uniform(-1.0, 1.0, (6, 3))  # features in the principal frame
+    R_CI = constant_rate_attitudes(np.array([0.01, -0.02, 0.005]), random_rotation(40), t)
+    R_CT = R_CI @ np.swapaxes(R_TI, 1, 2)
+    centre = np.array([0.3, 12.0, -0.2]) + np.outer(t, [0.01, -0.05, 0.0])
+    p_inC = np.einsum("tij,kj->tki", R_CT, p_T) + centre[:, None, :]
+    uv_l, uv_r = stereo_pixels(p_inC)
+    m = triangulate_parallel(uv_l, uv_r, F_PX, B_M, PP)
+    i, j, k = best_triplet(m[0])
+    R_GC0 = g_frame_from_points(m[0, i], m[0, j], m[0, k])
+    catalogue = features_in_G(m[0], R_GC0, m[0, i])
+    R_GC = np.empty((len(t), 3, 3))
+    for n in range(len(t)):
+        vis = np.ones(6, bool)
+        if 50 <= n < 120:
+            vis[[i, k]] = False  # two defining features occluded for 7 s
+        idx = np.flatnonzero(vis)
+        R_GC[n] = recover_G(m[n, idx], catalogue, idx).R_GC
+    R_GT_true = R_GC0 @ R_CT[0]
+    w_G = rate_from_attitudes(R_GC, t, R_CI)
+    w_G_true = w_T @ R_GT_true.T
+    assert np.max(np.abs(w_G - w_G_true)) < 1e-5
+    est = identify_inertia(w_G, R_GC @ R_CI)
+    I_G = R_GT_true @ I_T @ R_GT_true.T
+    assert np.max(np.abs(est.I_bar_G - I_G / I_G[0, 0])) < 2e-4  # measured 4.8e-5
+    assert angle_between(principal_frame(est.I_bar_G), principal_frame(I_G)) < 2e-4
+
+
+# ------------------------------------------------------------------ DPACF properties
+
+SIGNED_PERMS = [
+    P
+    for perm in itertools.permutations(range(3))
+    for signs in itertools.product((1.0, -1.0), repeat=3)
+    if np.isclose(np.linalg.det(P := np.eye(3)[:, list(perm)] * np.array(signs)), 1.0)
+]
+
+quat4 = arrays(np.float64, 4, elements=st.floats(-1.0, 1.0)).filter(
+    lambda q: np.linalg.norm(q) > 0.1
+)
+moments = st.tuples(st.floats(1.0, 10.0), st.floats(0.1, 0.8), st.floats(0.1, 0.8)).map(
+    lambda m: np.array([m[0] * (1 + m[1]) * (1 + m[2]), m[0] * (1 + m[1]), m[0]])
+)
+
+
+def _dpacf_reference(R_GT0):
+    """Expected DPACF frame of R_GT0 diag(l1 > l2 > l3) R_GT0^T, computed independently.
+
+    r1: first component (x, then y, z for the degenerate r1_x = 0) positive; r2: largest
+    magnitude component positive; r3 = r1 x r2.
+    """
+    r1, r2 = R_GT0[:, 0].copy(), R_GT0[:, 1].copy()
+    r1 *= np.sign(r1[np.flatnonzero(np.abs(r1) > 1e-6)[0]])
+    r2 *= np.sign(r2[np.argmax(np.abs(r2))])
+    return np.column_stack([r1, r2, np.cross(r1, r2)])
+
+
+def _decisive(R_GT0, margin, allow_zero_r1=False):
+    """The sign rules are at least ``margin`` away from their switching sets.
+
+    r1_x clearly non-zero (or, with ``allow_zero_r1``, every r1 component either clearly
+    non-zero or zero to round-off: axis-aligned draws, which exercise the documented
+    fallback); r2's two largest magnitudes not tied.
+    """
+    r1, r2 = np.abs(R_GT0[:, 0]), R_GT0[:, 1]
+    if allow_zero_r1:
+        r1_ok = np.all((r1 > margin) | (r1 < 1e-13))
+    else:
+        r1_ok = r1[0] > margin
+    top2 = np.sort(np.abs(r2))[-2:]
+    return bool(r1_ok and top2[1] - top2[0] > margin)
+
+
+def test_signed_permutations_are_the_24_proper_candidates():
+    assert len(SIGNED_PERMS) == 24
+    assert len({tuple(P.ravel()) for P in SIGNED_PERMS}) == 24
+
+
+@given(moments, quat4)
+def test_principal_frame_is_unique_among_24_candidates(lam, q):
+    assume(lam[0] < lam[1] + lam[2])  # triangle inequality of a rigid body
+    R_GT0 = rot.quat_to_matrix(q)
+    assume(_decisive(R_GT0, 1e-6, allow_zero_r1=True))
+    expected = _dpacf_reference(R_GT0)
+    for P in SIGNED_PERMS:
+        R = R_GT0 @ P
+        I_T_cand = P.T @ np.diag(lam) @ P
+        out = principal_frame(R @ I_T_cand @ R.T)
+        assert np.allclose(out, expected, atol=1e-9)
+    I_G = R_GT0 @ np.diag(lam) @ R_GT0.T
+    out = principal_frame(I_G)
+    assert np.isclose(np.linalg.det(out), 1.0) and np.allclose(out.T @ out, np.eye(3))
+    D = out.T @ I_G @ out
+    assert np.allclose(D, np.diag(lam), atol=1e-9 * lam[0])  # x_T largest, z_T smallest
+    assert out[np.flatnonzero(np.abs(out[:, 0]) > 1e-6)[0], 0] > 0
+    assert out[np.argmax(np.abs(out[:, 1])), 1] > 0
+    assert np.allclose(principal_frame(3.7e-2 * I_G), out, atol=1e-9)  # scale-free
+    assert np.allclose(principal_moments(I_G), lam / lam[0])
+
+
+@given(moments, quat4, arrays(np.float64, 6, elements=st.floats(-1.0, 1.0)))
+def test_principal_frame_is_continuous_away_from_switching_sets(lam, q, d):
+    assume(lam[0] < lam[1] + lam[2])
+    R_GT0 = rot.quat_to_matrix(q)
+    assume(_decisive(R_GT0, 0.05))
+    I_G = R_GT0 @ np.diag(lam) @ R_GT0.T
+    eps = 1e-6 * lam[0]
+    dI = eps * np.array([[d[0], d[3], d[4]], [d[3], d[1], d[5]], [d[4], d[5], d[2]]])
+    change = angle_between(principal_frame(I_G + dI), principal_frame(I_G))
+    gap = min(lam[0] - lam[1], lam[1] - lam[2])
+    assert change <= 10 * np.linalg.norm(dI) / gap + 1e-12
+
+
+def test_principal_frame_degenerate_first_component_and_stacks():
+    # Axis-aligned inertia: r1 = +-y_G exactly, the paper's rule (r1_x > 0) is undefined;
+    # the fallback makes the first significant component positive -> deterministic.
+    out = principal_frame(np.diag([4.0, 8.0, 5.0]))
+    assert np.allclose(out, [[0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    stack = np.stack([np.diag([4.0, 8.0, 5.0]), np.diag([8.0, 5.0, 4.0])])
+    assert np.allclose(principal_frame(stack)[1], np.eye(3))
+    with pytest.raises(ValueError):
+        principal_frame(np.full((3, 3), np.nan))
