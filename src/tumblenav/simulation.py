@@ -301,7 +301,7 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
             orbit.mu_m3_s2,
         )
         rel = dynamics.nonlinear_relative(
-            r0, v0, np.asarray(tg.r0_L_m, float), np.asarray(tg.v0_L_m_s, float), t, j2=orbit.j2
+            r0, v0, np.asarray(tg.r0_L_m, float), np.asarray(tg.v0_L_m_s, float), t, j2=orbit.j2, mu=orbit.mu_m3_s2
         )
         r_L, v_L = np.asarray(rel.r_L), np.asarray(rel.v_L)
         cr, cv = np.asarray(rel.chaser_r_I), np.asarray(rel.chaser_v_I)
