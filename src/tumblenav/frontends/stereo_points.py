@@ -39,10 +39,11 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class FrontEndSettings:
-    rate_half_window: int = 5  # epochs on each side of the local rate fit
+    rate_half_window: int = 10  # epochs on each side of the local rate fit
     min_ls_epochs: int = 20  # epochs of rate data before the inertia is trusted
     max_condition: float = 1e8  # of the column-scaled normal equations
     min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
+    max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
 
 
 @dataclass
@@ -59,7 +60,8 @@ class PointsFrontEnd:
     R_GT: Array  # (B,n,3,3) DPACF principal frame (NaN until identified)
     moments: Array  # (B,n,3) principal moments / lambda_1
     q_TI: Array  # (B,n,4) DPACF attitude measurement
-    cov_TI: Array  # (B,n,3,3)
+    cov_TI: Array  # (B,n,3,3) its covariance (frame part + G attitude noise)
+    cov_frame: Array  # (B,n,3,3) the slowly varying part: error of the DPACF frame T in G
     skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
 
 
@@ -283,7 +285,7 @@ def identify_and_dpacf(
     cov_G: Array,
     s: FrontEndSettings,
     delay: int = 0,
-) -> tuple[Array, Array, Array, Array]:
+) -> tuple[Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance."""
     B, n = omega_G.shape[:2]
@@ -314,7 +316,10 @@ def identify_and_dpacf(
     rss = bb - 2 * np.einsum("...i,...i->...", X, r) + np.einsum("...i,...ij,...j->...", X, N, X)
     dof = np.maximum(3 * cnt - 8, 1)
     s2 = np.maximum(rss / dof, 1e-30)
-    cov_l = s2[..., None, None] * Ninv[..., :5, :5]
+    # The rates come from overlapping windows of 2h+1 attitudes, so neighbouring epochs share
+    # their noise: the least-squares covariance, which assumes independent epochs, is too
+    # small by about that factor.
+    cov_l = (2 * s.rate_half_window + 1) * s2[..., None, None] * Ninv[..., :5, :5]
     I_G = _inertia_from_l(X[..., :5])
     lam = np.linalg.eigvalsh(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
     lam = lam[..., ::-1]
@@ -334,6 +339,8 @@ def identify_and_dpacf(
         -2,
     )  # (...,3,5)
     cov_phi = Jphi @ cov_l @ np.swapaxes(Jphi, -1, -2)
+    sig_phi = np.sqrt(np.max(np.linalg.eigvalsh(np.nan_to_num(cov_phi, nan=1e6)), axis=-1))
+    valid &= sig_phi < s.max_dpacf_sigma_rad
     R_TG = np.swapaxes(R_GT, -1, -2)
     R_TI = R_TG @ _finite_or_identity(R_GI)
     cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
@@ -343,7 +350,8 @@ def identify_and_dpacf(
     cov_TI = np.where(meas_ok[..., None, None], cov_TI, np.nan)
     R_GT = np.where(valid[..., None, None], R_GT, np.nan)
     moments = np.where(valid[..., None], lam / lam[..., :1], np.nan)
-    return R_GT, moments, q_TI, cov_TI
+    cov_phi = np.where(valid[..., None, None], cov_phi, np.nan)
+    return R_GT, moments, q_TI, cov_TI, cov_phi
 
 
 def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
@@ -361,7 +369,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     omega_G, var_w = rates_from_G(R_GI, cov_G, dt, s.rate_half_window)
-    R_GT, moments, q_TI, cov_TI = identify_and_dpacf(
+    R_GT, moments, q_TI, cov_TI, cov_frame = identify_and_dpacf(
         omega_G, var_w, R_GI, cov_G, s, delay=s.rate_half_window
     )
     return PointsFrontEnd(
@@ -378,5 +386,6 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         moments=moments,
         q_TI=q_TI,
         cov_TI=cov_TI,
+        cov_frame=cov_frame,
         skipped=skipped,
     )
