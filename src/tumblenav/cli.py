@@ -70,6 +70,72 @@ def simulate(
 
 
 @app.command()
+def estimate(
+    scenario: ScenarioArg,
+    estimator: Annotated[str, typer.Option("--estimator", "-e", help="see `tumblenav estimators`")],
+    output: OutOpt = Path("out/estimate"),
+    measurements: Annotated[
+        Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="run seed (default: the scenario's)")] = None,
+) -> None:
+    """Estimate one run; write estimates.nc, summary.json and error figures."""
+    from tumblenav.pipeline import print_summary, run_estimate
+
+    summary = run_estimate(scenario, estimator, output, measurements, seed, console=err)
+    print_summary(summary, out)
+    out.print(f"results in {output}")
+
+
+@app.command()
+def montecarlo(
+    scenario: ScenarioArg,
+    estimator: Annotated[str, typer.Option("--estimator", "-e", help="see `tumblenav estimators`")],
+    runs: Annotated[int, typer.Option(min=1, help="number of runs")] = 20,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="processes (default: all cores)")
+    ] = None,
+    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address")] = None,
+    output: OutOpt = Path("out/montecarlo"),
+) -> None:
+    """Seeded Monte Carlo campaign; resumable: rerun with the same -o to finish it."""
+    from tumblenav.pipeline import print_summary, run_montecarlo
+
+    summary = run_montecarlo(scenario, estimator, runs, output, workers, scheduler, console=err)
+    print_summary(summary, out)
+    out.print(f"results in {output}")
+
+
+@app.command()
+def reproduce(
+    paper: Annotated[str, typer.Argument(help="hu2024, yu2019, chang2021 or kabir2025")],
+    runs: Annotated[
+        int | None, typer.Option(min=1, help="runs per case (default: the paper's)")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="processes (default: all cores)")
+    ] = None,
+    output: OutOpt = Path("out/reproduce"),
+) -> None:
+    """Reproduce a paper's simulation section: figures and summary.json with its values."""
+    from tumblenav.papers import reproduce as rep
+
+    summary = rep(paper, output, runs=runs, workers=workers, console=err)
+    out.print(f"{len(summary.get('cases', []))} cases; results in {output}")
+
+
+@app.command()
+def estimators() -> None:
+    """List the estimators and what each needs."""
+    from tumblenav.estimators.base import available
+
+    table = Table("name", "needs", "description")
+    for name, est in available().items():
+        table.add_row(name, est.needs, est.description)
+    out.print(table)
+
+
+@app.command()
 def demo(output: OutOpt = Path("out/demo")) -> None:
     """Run the main job on the built-in default scenario (hu2024) and say where results are."""
     from tumblenav.pipeline import run_demo

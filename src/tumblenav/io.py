@@ -109,3 +109,68 @@ def read_json(path: str | Path) -> Any:
         raise InputError("file not found", str(path)) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid JSON ({exc})", str(path)) from None
+
+
+def estimates_dataset(history, scenario: str, estimator: str, x_true=None) -> xr.Dataset:
+    """``estimates.nc``: every state block, its 1-sigma, the full error-state covariance,
+    NIS, and (when the truth is known) the error state."""
+    lay = history.layout
+    data: dict = {}
+    for b in lay.blocks:
+        val = history.x[:, lay.nom(b.name)]
+        sig = history.sigma(b.name)
+        if b.kind == "quat":
+            data[b.name] = (("time", "quat"), val, {"description": f"{b.name} q_TI [x,y,z,w]"})
+            data[f"sigma_{b.name}"] = (
+                ("time", "xyz"),
+                sig,
+                {"units": "rad", "description": "1-sigma of the attitude error in T"},
+            )
+        elif b.name == "features":
+            n = val.shape[1] // 3
+            data[b.name] = (("time", "feature", "xyz"), val.reshape(-1, n, 3), {"units": "m"})
+            data[f"sigma_{b.name}"] = (
+                ("time", "feature", "xyz"),
+                sig.reshape(-1, n, 3),
+                {"units": "m"},
+            )
+        else:
+            dim = f"{b.name}_component"
+            data[b.name] = (("time", dim), val, {"units": _BLOCK_UNITS.get(b.name, "1")})
+            data[f"sigma_{b.name}"] = (("time", dim), sig, {"units": _BLOCK_UNITS.get(b.name, "1")})
+    data["covariance"] = (
+        ("time", "state", "state_"),
+        history.P,
+        {"description": "error-state covariance; blocks in attribute 'layout'"},
+    )
+    data["nis"] = (("time",), history.nis, {"description": "normalised innovation squared"})
+    data["nis_dof"] = (("time",), history.nis_dof)
+    if x_true is not None:
+        data["error"] = (
+            ("time", "state"),
+            lay.boxminus(x_true, history.x),
+            {"description": "truth [-] estimate, error-state coordinates"},
+        )
+    layout_txt = "; ".join(
+        f"{b.name}:{lay.err(b.name).start}-{lay.err(b.name).stop}" for b in lay.blocks
+    )
+    return xr.Dataset(
+        data,
+        coords={
+            "time": ("time", history.t, {"units": "s"}),
+            "quat": ["x", "y", "z", "w"],
+            "xyz": ["x", "y", "z"],
+        },
+        attrs={
+            "title": "tumblenav estimates",
+            "scenario": scenario,
+            "estimator": estimator,
+            "layout": layout_txt,
+            "skipped": "; ".join(f"{k}={v}" for k, v in history.skipped.items()),
+            "frames": "attitude maps I into the estimator's principal frame T; position "
+            "and velocity in L; features in T",
+        },
+    )
+
+
+_BLOCK_UNITS = {"rate": "rad/s", "position": "m", "velocity": "m/s", "offset": "m"}

@@ -50,24 +50,29 @@ class RunErrors:
     nis_dof: Array  # (n,)
 
 
-def run_errors(history: EstimateHistory, x_true: Array) -> RunErrors:
-    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout."""
-    lay = history.layout
-    dx = lay.boxminus(x_true, history.x)  # (n, dim)
+def error_magnitudes(dx: Array, lay) -> dict[str, Array]:
+    """Per-time error magnitudes in summary units from error states ``dx`` (..., dim)."""
     out: dict[str, Array] = {}
     for b in lay.blocks:
         if b.name not in QUANTITIES:
             continue
         key, scale = QUANTITIES[b.name]
-        e = dx[:, lay.err(b.name)]
+        e = dx[..., lay.err(b.name)]
         if b.name == "features":
-            e3 = e.reshape(len(e), -1, 3)
+            e3 = e.reshape(e.shape[:-1] + (-1, 3))
             out[key] = scale * np.sqrt(np.mean(np.sum(e3**2, axis=-1), axis=-1))
         else:
             out[key] = scale * np.linalg.norm(e, axis=-1)
+    return out
+
+
+def run_errors(history: EstimateHistory, x_true: Array) -> RunErrors:
+    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout."""
+    lay = history.layout
+    dx = lay.boxminus(x_true, history.x)  # (n, dim)
     return RunErrors(
         t=history.t,
-        errors=out,
+        errors=error_magnitudes(dx, lay),
         nees=nees(dx, history.P),
         nees_dof=lay.dim,
         nis=history.nis,
@@ -76,17 +81,14 @@ def run_errors(history: EstimateHistory, x_true: Array) -> RunErrors:
 
 
 def nees(dx: Array, P: Array) -> Array:
-    """Normalised estimation error squared ``dx^T P^-1 dx`` per row; NaN where P is singular."""
+    """Normalised estimation error squared ``dx^T P^-1 dx`` per row; NaN where undefined."""
     out = np.full(dx.shape[0], np.nan)
-    try:
-        sol = np.linalg.solve(P, dx[..., None])[..., 0]
-        out = np.einsum("...i,...i->...", dx, sol)
-    except np.linalg.LinAlgError:
-        for k in range(dx.shape[0]):
-            try:
-                out[k] = dx[k] @ np.linalg.solve(P[k], dx[k])
-            except np.linalg.LinAlgError:
-                out[k] = np.nan
+    ok = np.all(np.isfinite(dx), axis=-1) & np.all(np.isfinite(P), axis=(-1, -2))
+    for k in np.flatnonzero(ok):
+        try:
+            out[k] = dx[k] @ np.linalg.solve(P[k], dx[k])
+        except np.linalg.LinAlgError:
+            out[k] = np.nan
     return out
 
 

@@ -76,3 +76,87 @@ def plot_measurements(meas, path: str | Path, title: str = "") -> Path:
     ax.set_title("seen by both cameras (green)")
     fig.suptitle(title or "stereo measurements")
     return save(fig, path)
+
+
+_PANELS = (
+    ("attitude", "attitude error [deg]", np.degrees(1.0)),
+    ("rate", "rate error [deg/s]", np.degrees(1.0)),
+    ("inertia", "inertia-parameter error [-]", 1.0),
+    ("position", "position error [m]", 1.0),
+    ("velocity", "velocity error [m/s]", 1.0),
+    ("features", "feature 1 error [m]", 1.0),
+)
+
+
+def plot_error_history(history, x_true, path: str | Path, title: str = "") -> Path:
+    """Error components of one run with the filter's +-3 sigma bounds (one panel per block)."""
+    lay = history.layout
+    dx = lay.boxminus(x_true, history.x)
+    sig = np.sqrt(np.maximum(np.diagonal(history.P, axis1=1, axis2=2), 0.0))
+    names = [p for p in _PANELS if p[0] in lay.names()]
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.1 * len(names)), sharex=True)
+    axes = np.atleast_1d(axes)
+    colors = ("tab:blue", "tab:orange", "tab:green")
+    for ax, (name, label, scale) in zip(axes, names, strict=True):
+        s = lay.err(name)
+        idx = range(s.start, s.start + 3)
+        for c, i in zip(colors, idx, strict=True):
+            ax.plot(history.t, scale * dx[:, i], color=c, lw=0.9, label="xyz"[i - s.start])
+            ax.plot(history.t, 3 * scale * sig[:, i], color=c, lw=0.6, ls="--")
+            ax.plot(history.t, -3 * scale * sig[:, i], color=c, lw=0.6, ls="--")
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(alpha=0.3)
+        lim = np.nanpercentile(np.abs(scale * dx[:, s]), 99) if np.isfinite(dx[:, s]).any() else 1
+        ax.set_ylim(-2.5 * lim - 1e-12, 2.5 * lim + 1e-12)
+    axes[0].legend(
+        loc="upper right",
+        fontsize=7,
+        ncol=3,
+        title="solid: error, dashed: +-3 sigma",
+        title_fontsize=7,
+    )
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title or "estimation errors")
+    return save(fig, path)
+
+
+def plot_rmse(
+    curves: dict[str, tuple],
+    ylabel: str,
+    path: str | Path,
+    title: str = "",
+    log: bool = True,
+    window: tuple[float, float] | None = None,
+) -> Path:
+    """Monte Carlo RMSE over runs vs time (Hu 2024 eq. 45) for several cases."""
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for label, (t, y) in curves.items():
+        ax.plot(t, y, lw=1.0, label=label)
+    if log:
+        ax.set_yscale("log")
+    if window:
+        ax.axvspan(*window, color="0.9", zorder=0, label="steady-state window")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    return save(fig, path)
+
+
+def plot_consistency(
+    t, values: dict[str, np.ndarray], bounds: tuple[float, float], path: str | Path, title: str = ""
+) -> Path:
+    """Run-averaged normalised NEES / NIS vs time with the 95% chi-square band."""
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for label, v in values.items():
+        ax.plot(t, v, lw=0.9, label=label)
+    ax.axhspan(bounds[0], bounds[1], color="tab:green", alpha=0.2, label="95% bounds")
+    ax.axhline(1.0, color="k", lw=0.5)
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("average / dof")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    return save(fig, path)

@@ -48,18 +48,16 @@ def evaluate_runs(
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded, not fatal
             out.append((k, None, _short(exc)))
     batch = getattr(est, "run_batch", None)
-    histories: list[Any]
-    if batch is not None and len(sims) > 1:
+    if batch is not None and sims:
         try:
-            histories = batch(scenario, [s[2] for s in sims], [s[3] for s in sims])
+            res = batch(scenario, [s[2] for s in sims], [s[3] for s in sims], [s[1] for s in sims])
+            out.extend((k, r, None) for (k, *_), r in zip(sims, res, strict=True))
+            return out
         except Exception:  # noqa: BLE001 - fall back to one run at a time to isolate failures
-            histories = [None] * len(sims)
-    else:
-        histories = [None] * len(sims)
-    for (k, truth, meas, rng), hist in zip(sims, histories, strict=True):
+            pass
+    for k, truth, meas, rng in sims:
         try:
-            if hist is None:
-                hist = est.run(scenario, meas, rng)
+            hist = est.run(scenario, meas, rng)
             r = metrics.run_errors(hist, est.truth_state(truth, hist))
             out.append((k, (r, hist.skipped), None))
         except Exception as exc:  # noqa: BLE001

@@ -320,11 +320,12 @@ def run_filter(
     scenario: Any,
     meas_list: list,
     use_dpacf: bool,
-    x_true: list[Array] | None = None,
+    truths: list | None = None,
     keep_history: bool = True,
 ) -> dict[str, Any]:
     """Run the EKF on B runs at once. Returns histories (if ``keep_history``), NIS, and with
-    ``x_true`` (the truth in this filter's layout, per run) the error histories and NEES."""
+    ``truths`` (the simulated truth of each run) the error histories and NEES against the
+    truth expressed in this filter's principal frame (:func:`canonical_frame`)."""
     tun = parse_tuning(scenario.estimator.tuning)
     s_t2 = (
         tun.sigma_t2_m2_s4
@@ -353,11 +354,18 @@ def run_filter(
     out_P = np.full((B, n, d, d), np.nan) if keep_history else None
     nis = np.full((B, n), np.nan)
     nis_dof = np.zeros((B, n))
-    nees = np.full((B, n), np.nan) if x_true is not None else None
-    err = np.full((B, n, d), np.nan) if x_true is not None else None
+    nees = np.full((B, n), np.nan) if truths is not None else None
+    err = np.full((B, n, d), np.nan) if truths is not None else None
     rejected = np.zeros(B, dtype=np.int64)
     diverged = np.zeros(B, dtype=bool)
-    xt = np.stack(x_true) if x_true is not None else None
+    xt = None
+    if truths is not None:
+        xt = np.stack(
+            [
+                truth_in_frame(tr, canonical_frame(fe.template_G[b], fe.known[b], tr), lay)
+                for b, tr in enumerate(truths)
+            ]
+        )
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
     for k in range(n):
@@ -423,6 +431,7 @@ def run_filter(
         "k0": init.k0,
         "rejected": rejected,
         "diverged": diverged,
+        "x_true": xt,
     }
 
 
@@ -644,6 +653,33 @@ class HuEKF:
                 "dpacf_q_TI": fe.q_TI[0],
             },
         )
+
+    def run_batch(self, scenario: Any, measurements: list, rngs: list, truths: list) -> list:
+        """Many runs at once (vectorised); returns one (RunErrors, skipped) per run."""
+        from tumblenav.metrics import RunErrors, attitude_error_rad, error_magnitudes
+
+        self._check(scenario)
+        res = run_filter(scenario, measurements, self.use_dpacf, truths=truths, keep_history=False)
+        fe, lay = res["frontend"], res["layout"]
+        mags = error_magnitudes(res["err"], lay)
+        dpacf = np.degrees(attitude_error_rad(res["x_true"][..., lay.nom("attitude")], fe.q_TI))
+        out = []
+        for b in range(len(measurements)):
+            errors = {k: v[b] for k, v in mags.items()}
+            errors["dpacf_attitude_deg"] = dpacf[b]
+            skipped = {k: int(v[b]) for k, v in fe.skipped.items()}
+            skipped["gated_out"] = int(res["rejected"][b])
+            skipped["diverged"] = int(res["diverged"][b])
+            r = RunErrors(
+                t=res["t"],
+                errors=errors,
+                nees=res["nees"][b],
+                nees_dof=lay.dim,
+                nis=res["nis"][b],
+                nis_dof=res["nis_dof"][b],
+            )
+            out.append((r, skipped))
+        return out
 
     def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
         R = canonical_frame(history.info["template_G"], history.info["known"], truth)

@@ -1,0 +1,31 @@
+"""Paper reproduction recipes: they compose the stages and hold no algorithm of their own."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from tumblenav.errors import InputError
+
+PAPERS = ("hu2024", "yu2019", "chang2021", "kabir2025")
+
+
+def reproduce(
+    paper: str,
+    output: Path,
+    runs: int | None = None,
+    workers: int | None = None,
+    console: Console | None = None,
+) -> dict[str, Any]:
+    if paper not in PAPERS:
+        raise InputError(f"unknown paper '{paper}' (one of {', '.join(PAPERS)})")
+    if paper == "hu2024":
+        from tumblenav.papers import hu2024
+
+        return hu2024.reproduce(Path(output), runs=runs, workers=workers, console=console)
+    raise InputError(
+        f"reproduce {paper} is not implemented yet (its estimator comes with its "
+        "own issue); available: hu2024"
+    )
