@@ -12,6 +12,7 @@ noise levels are compared head to head).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -276,13 +277,33 @@ def draw_features(scenario: Scenario, rng: np.random.Generator) -> tuple[Array, 
     return pts, nrm
 
 
+# The truth motion does not depend on the random streams, so Monte Carlo runs of one scenario
+# share it: it is integrated once per process (the tight tolerances make it the costliest
+# part of a run). Results are returned read-only.
+@functools.lru_cache(maxsize=16)
+def _attitude_truth(q0, w0, inertia, t_bytes) -> tuple[Array, Array]:
+    t = np.frombuffer(t_bytes, dtype=float)
+    q, w = dynamics.propagate_attitude(np.array(q0), np.array(w0), np.array(inertia), t)
+    q.setflags(write=False)
+    w.setflags(write=False)
+    return q, w
+
+
+@functools.lru_cache(maxsize=16)
+def _orbit_truth(r0, v0, r0_L, v0_L, t_bytes, j2, mu):
+    t = np.frombuffer(t_bytes, dtype=float)
+    return dynamics.nonlinear_relative(
+        np.array(r0), np.array(v0), np.array(r0_L), np.array(v0_L), t, j2=j2, mu=mu
+    )
+
+
 def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Truth:
     """Torque-free attitude (Euler + kinematics) and nonlinear relative orbit, both tight."""
     t = scenario.times
     tg = scenario.target
     inertia = tg.inertia_matrix
-    q_TI, omega = dynamics.propagate_attitude(
-        np.asarray(tg.q0_TI, float), np.asarray(tg.omega0_T_rad_s, float), inertia, t
+    q_TI, omega = _attitude_truth(
+        tuple(tg.q0_TI), tuple(tg.omega0_T_rad_s), tuple(map(tuple, inertia)), t.tobytes()
     )
     orbit = scenario.chaser.orbit
     n = len(t)
@@ -300,11 +321,12 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
             np.radians(orbit.arg_latitude_deg),
             orbit.mu_m3_s2,
         )
-        rel = dynamics.nonlinear_relative(
-            r0, v0, np.asarray(tg.r0_L_m, float), np.asarray(tg.v0_L_m_s, float), t, j2=orbit.j2, mu=orbit.mu_m3_s2
+        rel = _orbit_truth(
+            tuple(r0), tuple(v0), tuple(tg.r0_L_m), tuple(tg.v0_L_m_s), t.tobytes(), orbit.j2,
+            orbit.mu_m3_s2,
         )
-        r_L, v_L = np.asarray(rel.r_L), np.asarray(rel.v_L)
-        cr, cv = np.asarray(rel.chaser_r_I), np.asarray(rel.chaser_v_I)
+        r_L, v_L = np.array(rel.r_L), np.array(rel.v_L)
+        cr, cv = np.array(rel.chaser_r_I), np.array(rel.chaser_v_I)
         q_LI = rot.matrix_to_quat(np.swapaxes(lvlh_axes(cr, cv), -1, -2))
     if scenario.chaser.attitude == "target-pointing":
         R_LC = sensors.target_pointing_R_LC(r_L)

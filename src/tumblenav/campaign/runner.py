@@ -113,7 +113,7 @@ def run_campaign(
     if todo:
         if chunk_size is None:
             batched = hasattr(est, "run_batch")
-            chunk_size = max(1, min(64, -(-len(todo) // workers))) if batched else 1
+            chunk_size = max(1, min(128, -(-len(todo) // workers))) if batched else 1
         chunks = list(_chunks(todo, chunk_size))
         _execute(
             scenario,

@@ -376,7 +376,7 @@ def run_filter(
             Phi, Qk = discretise(F, core_Qc(x[:, sp], s_r2, s_t2), dt)
             q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
             x[:, sq], x[:, sw] = q_new, w_new
-            x[:, srv] = np.einsum("bij,bj->bi", Phi[:, 9:15, 9:15], x[:, srv])
+            x[:, srv] = (Phi[:, 9:15, 9:15] @ x[:, srv, None])[..., 0]
             Pcc = Phi @ P[:, :15, :15] @ np.swapaxes(Phi, -1, -2) + Qk
             Pcf = Phi @ P[:, :15, 15:]
             P[:, :15, :15] = Pcc
@@ -388,19 +388,10 @@ def run_filter(
             P[start] = init.P0[start]
             active |= start
         if active.any():
-            x_k, P_k, nis_k, dof_k, rej = _update(
-                x,
-                P,
-                fe,
-                k,
-                lay,
-                use_dpacf and (k % tun.attitude_meas_every == 0),
-                gate,
-                att_inflation,
-            )
-            x_k, P_k = constrain_inertia(x_k, P_k, lay)
-            x = np.where(active[:, None], x_k, x)
-            P = np.where(active[:, None, None], P_k, P)
+            use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
+            x, P, nis_k, dof_k, rej = _update(x, P, fe, k, lay, use_att, gate, att_inflation,
+                                              active)
+            x, P = constrain_inertia(x, P, lay, active)
             bad = active & _diverged(x, P, lay)
             if bad.any():  # a run that blew up is stopped (NaN from here on) and counted
                 diverged |= bad
@@ -459,21 +450,21 @@ def inertia_constraint(p: Array, jac: bool = False):
     return c, np.stack([1 + py * pz, 1 + px * pz, 1 + px * py], -1)
 
 
-def constrain_inertia(x: Array, P: Array, lay: StateLayout, r: float = 1e-10):
-    """Apply ``c(p) = 0`` as a (nearly) perfect scalar pseudo-measurement (Simon 2010) and
-    keep every ratio inside its physical range |p_i| < 1 (triangle inequality)."""
+def constrain_inertia(x: Array, P: Array, lay: StateLayout, active=None, r: float = 1e-10):
+    """Apply ``c(p) = 0`` as a (nearly) perfect scalar pseudo-measurement (Simon 2010, "estimate
+    projection" by a Kalman update) and keep every ratio inside |p_i| < 1 (triangle inequality).
+    Runs where ``active`` is False are left alone."""
     sp = lay.nom("inertia")
     ep = lay.err("inertia")
     c, g = inertia_constraint(x[:, sp], jac=True)
-    Hc = np.zeros((x.shape[0], lay.dim))
-    Hc[:, ep] = g
-    PH = np.einsum("bij,bj->bi", P, Hc)
-    s = np.einsum("bi,bi->b", Hc, PH) + r
+    if active is not None:
+        c = np.where(active, c, 0.0)
+        g = g * active[:, None]
+    PH = (P[:, :, ep] @ g[..., None])[..., 0]  # P H^T, H nonzero on the p block only
+    s = np.sum(g * PH[:, ep], axis=1) + r
     K = PH / s[:, None]
-    dx = -K * c[:, None]
-    A = np.eye(lay.dim) - K[:, :, None] * Hc[:, None, :]
-    P = A @ P @ np.swapaxes(A, -1, -2) + r * K[:, :, None] * K[:, None, :]
-    x = lay.boxplus(x, dx)
+    x = lay.boxplus(x, -K * c[:, None])
+    P = P - K[:, :, None] * PH[:, None, :]
     x[:, sp] = np.clip(x[:, sp], -0.999, 0.999)
     return x, 0.5 * (P + np.swapaxes(P, -1, -2))
 
@@ -484,76 +475,85 @@ def _neutral_state(lay: StateLayout) -> Array:
     return x
 
 
-def _update(x, P, fe, k, lay, use_att, gate, att_inflation=1.0):
-    """One batched measurement update at epoch k (Hu 2024 eq. 40-44), Joseph form."""
+def _update(x, P, fe, k, lay, use_att, gate, att_inflation, active):
+    """One batched measurement update at epoch k (Hu 2024 eq. 40-44).
+
+    All visible feature blocks (eq. 32-35) and the DPACF attitude (eq. 31) are processed
+    together; the sparsity of H is used so that the cost is O(d^2 m), not O(d^3).
+    Covariance: the Joseph form of eq. 41, ``(I-KH)P(I-KH)^T + K R K^T``, equals
+    ``P - (HP)^T S^-1 (HP)`` for the optimal gain of eq. 42 (expand it and use
+    ``K S = P H^T``); that expression is evaluated (symmetrised), which avoids the two
+    O(d^3) products. Rows of measurements that are missing (or runs not started) are
+    zeroed, so they change nothing.
+    """
     B, N = fe.usable.shape[0], fe.usable.shape[2]
     d = lay.dim
     m = 3 + 3 * N
-    R_LI = fe.R_LI[:, k]
-    y_hat, Hf = feature_measurement(x, R_LI, lay, jac=True)
-    H = np.zeros((B, m, d))
+    sa, sr = lay.err("attitude"), lay.err("position")
+    sf0 = lay.err("features").start
+    q = x[:, lay.nom("attitude")]
+    f = x[:, lay.nom("features")].reshape(B, N, 3)
+    R_LT = fe.R_LI[:, k] @ np.swapaxes(rot.quat_to_matrix(q), -1, -2)
+    Hth = R_LT[:, None] @ rot.skew(f)  # (B,N,3,3): dy_i/dtheta = R_LT [f_i x]
+    y_hat = x[:, None, lay.nom("position")] + f @ np.swapaxes(R_LT, -1, -2)
+    u = fe.usable[:, k] & active[:, None]
+    ok0 = np.all(np.isfinite(fe.q_TI[:, k]), axis=-1) & active & use_att
+    rows = np.concatenate([np.repeat(ok0[:, None], 3, 1), np.repeat(u, 3, axis=1)], axis=1)
+    # innovations
     nu = np.zeros((B, m))
+    q_hat = x[:, lay.nom("attitude")]
+    qm = np.where(ok0[:, None], fe.q_TI[:, k], q_hat)
+    nu[:, :3] = rot.boxminus(qm, q_hat)
+    nu[:, 3:] = (np.nan_to_num(fe.p_L[:, k]) - y_hat).reshape(B, -1)
+    nu *= rows
+    # H P, using the structure of H
+    Pth = P[:, sa, :]
+    HPf = Hth @ Pth[:, None] + P[:, None, sr, :] + R_LT[:, None] @ P[:, sf0:, :].reshape(B, N, 3, d)
+    HP = np.concatenate([Pth, HPf.reshape(B, 3 * N, d)], axis=1) * rows[..., None]
+    # S = H P H^T + R, again from the structure of H (columns: attitude, then features)
+    HPth, HPr = HP[:, :, sa], HP[:, :, sr]
+    S_f = HPth @ np.transpose(Hth, (0, 3, 1, 2)).reshape(B, 3, 3 * N)
+    S_f += np.tile(HPr, (1, 1, N))
+    S_f += _feature_cols(HP[:, :, sf0:], R_LT, B, m, N)
+    S = np.concatenate([HPth, S_f], axis=2)
     Rm = np.zeros((B, m, m))
-    blk_ok = np.zeros((B, N + 1), dtype=bool)
     if use_att:
-        qm = fe.q_TI[:, k]
-        ok0 = np.all(np.isfinite(qm), axis=-1)
-        blk_ok[:, 0] = ok0
-        q_hat = x[:, lay.nom("attitude")]
-        nu[:, :3] = np.where(
-            ok0[:, None], rot.boxminus(np.where(ok0[:, None], qm, q_hat), q_hat), 0.0
-        )
-        H[:, :3, lay.err("attitude")] = np.where(ok0[:, None, None], np.eye(3), 0.0)
-        # The DPACF error is not white: its frame part (cov_frame) changes slowly as the
-        # least squares refine. Counting it at every epoch would make the filter believe
-        # the frame far better than it is, so it is inflated to enter once per correlation
-        # time (beyond the paper; see docs/results/hu2024.md).
-        R0 = fe.cov_TI[:, k] + (att_inflation - 1.0) * fe.cov_frame[:, k]
-        Rm[:, :3, :3] = np.where(ok0[:, None, None], np.nan_to_num(R0), np.eye(3))
-    else:
-        Rm[:, :3, :3] = np.eye(3)
-    u = fe.usable[:, k]
-    blk_ok[:, 1:] = u
-    Hf = np.where(np.repeat(u, 3, axis=1)[..., None], Hf, 0.0)
-    H[:, 3:] = Hf
-    nu[:, 3:] = np.where(u[..., None], np.nan_to_num(fe.p_L[:, k]) - y_hat, 0.0).reshape(B, -1)
-    covL = np.where(u[..., None, None], np.nan_to_num(fe.cov_L[:, k]), np.eye(3))
+        R0 = np.nan_to_num(fe.cov_TI[:, k] + (att_inflation - 1.0) * fe.cov_frame[:, k])
+        Rm[:, :3, :3] = R0
+    covL = np.nan_to_num(fe.cov_L[:, k])
     for i in range(N):
         Rm[:, 3 + 3 * i : 6 + 3 * i, 3 + 3 * i : 6 + 3 * i] = covL[:, i]
-    # Work in the error state scaled by its standard deviations (D^-1 P D^-1 has a unit
-    # diagonal): the covariance spans 1e-12 to 10 in SI units, and this keeps the Joseph
-    # update and the solves well conditioned.
-    D = np.sqrt(np.maximum(np.diagonal(P, axis1=1, axis2=2), 1e-300))
-    P = P / (D[:, :, None] * D[:, None, :])
-    H = H * D[:, None, :]
-    HP = H @ P
-    S = HP @ np.swapaxes(H, -1, -2) + Rm
-    # per-block chi-square gate on the innovations (beyond the paper); rejected blocks drop out
-    if np.isfinite(gate):
+    both = rows[:, :, None] & rows[:, None, :]
+    S = np.where(both, S + Rm, 0.0) + (~rows)[:, :, None] * np.eye(m)
+    keep_blocks = rows[:, ::3].copy()
+    rejected = np.zeros(B, dtype=np.int64)
+    if np.isfinite(gate):  # per-block chi-square gate on the innovations (optional)
         Sb = np.stack([S[:, 3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in range(N + 1)], 1)
         nb = nu.reshape(B, N + 1, 3)
         d2 = np.einsum("bji,bji->bj", nb, np.linalg.solve(Sb, nb[..., None])[..., 0])
-    reject = blk_ok & (d2 > gate) if np.isfinite(gate) else np.zeros_like(blk_ok)
-    keep = blk_ok & ~reject
-    rows = np.repeat(keep, 3, axis=1)  # (B, m)
-    HP = np.where(rows[..., None], HP, 0.0)
-    H = np.where(rows[..., None], H, 0.0)
-    nu = np.where(rows, nu, 0.0)
-    both = rows[:, :, None] & rows[:, None, :]
-    S = np.where(both, S, 0.0) + np.where(rows, 0.0, 1.0)[:, :, None] * np.eye(m)
-    S = 0.5 * (S + np.swapaxes(S, -1, -2))
-    SinvHP = np.linalg.solve(S, HP)  # S^-1 H P
-    K = np.swapaxes(SinvHP, -1, -2)  # P H^T S^-1 (eq. 42), scaled
-    dx = D * np.einsum("bim,bm->bi", K, nu)  # eq. 40
-    # Joseph form (eq. 41), positive semi-definite by construction
-    A = np.eye(d) - K @ H
-    Rk = np.where(both, Rm, 0.0)
-    P_new = A @ P @ np.swapaxes(A, -1, -2) + K @ Rk @ np.swapaxes(K, -1, -2)
-    P_new = 0.5 * (P_new + np.swapaxes(P_new, -1, -2)) * (D[:, :, None] * D[:, None, :])
+        reject = keep_blocks & (d2 > gate)
+        if reject.any():
+            keep_blocks &= ~reject
+            rejected = reject.sum(axis=1)
+            rows = np.repeat(keep_blocks, 3, axis=1)
+            both = rows[:, :, None] & rows[:, None, :]
+            S = np.where(both, S, 0.0) + (~rows)[:, :, None] * np.eye(m)
+            HP = HP * rows[..., None]
+            nu = nu * rows
+    sol = np.linalg.solve(S, np.concatenate([HP, nu[..., None]], axis=2))
+    Kt, Sinv_nu = sol[..., :d], sol[..., d]  # S^-1 H P (= K^T) and S^-1 nu
+    dx = (nu[:, None, :] @ Kt)[:, 0]  # K nu, eq. 40
+    P_new = P - np.swapaxes(HP, -1, -2) @ Kt  # eq. 41 for the optimal gain (see above)
+    P_new = 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
     x_new = lay.boxplus(x, dx)  # eq. 43-44
-    nis_k = np.einsum("bm,bm->b", nu, np.linalg.solve(S, nu[..., None])[..., 0])
-    dof = 3 * keep.sum(axis=1)
-    return x_new, P_new, nis_k, dof, reject.sum(axis=1)
+    nis_k = np.sum(nu * Sinv_nu, axis=1)
+    return x_new, P_new, nis_k, 3 * keep_blocks.sum(axis=1), rejected
+
+
+def _feature_cols(HPf_cols: Array, R_LT: Array, B: int, m: int, N: int) -> Array:
+    """``(HP)[:, :, f_j] R_LT^T`` for every feature j: (B, m, 3N)."""
+    X = HPf_cols.reshape(B, m * N, 3) @ np.swapaxes(R_LT, -1, -2)
+    return X.reshape(B, m, 3 * N)
 
 
 def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:

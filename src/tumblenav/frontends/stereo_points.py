@@ -32,7 +32,11 @@ from numpy.typing import NDArray
 from tumblenav import rotations as rot
 from tumblenav.frontends.inertia import inertia_design, principal_frame
 from tumblenav.frontends.photogrammetric import g_frame_from_points
-from tumblenav.frontends.triangulation import triangulate_parallel, triangulate_two_ray
+from tumblenav.frontends.triangulation import (
+    triangulate_parallel,
+    triangulate_two_ray,
+    triangulation_jacobian,
+)
 
 Array = NDArray[np.float64]
 
@@ -44,6 +48,7 @@ class FrontEndSettings:
     max_condition: float = 1e8  # of the column-scaled normal equations
     min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
     max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
+    ls_every: int = 5  # epochs between least-squares solutions
 
 
 @dataclass
@@ -90,11 +95,13 @@ def triangulate(meas_list) -> tuple[Array, Array, NDArray[np.bool_], dict[str, A
 
     uvl, uvr = uv[:, :, 0], uv[:, :, 1]
     p = tri(uvl, uvr)
-    both = obs[:, :, 0] & obs[:, :, 1]
-    finite = np.all(np.isfinite(p), axis=-1)
-    usable = both & finite
     # First-order covariance by central differences over the four pixel coordinates: works
     # for any rig (the closed form of triangulation_covariance covers the parallel one only).
+    if rig.kind == "parallel":  # closed form (Hu 2024 eq. 1 differentiated)
+        J = triangulation_jacobian(np.nan_to_num(p), rig.left.focal_px, rig.baseline_m)
+        J = np.where(np.isfinite(p)[..., None], J, np.nan)
+        cov = sigma**2 * (J @ np.swapaxes(J, -1, -2))
+        return _finish_triangulation(p, cov, obs)
     h = 1e-3
     J = np.empty(p.shape + (4,))
     for k in range(4):
@@ -102,8 +109,13 @@ def triangulate(meas_list) -> tuple[Array, Array, NDArray[np.bool_], dict[str, A
         d[k] = h
         dl, dr = d[:2], d[2:]
         J[..., k] = (tri(uvl + dl, uvr + dr) - tri(uvl - dl, uvr - dr)) / (2 * h)
-    cov = sigma**2 * np.einsum("...ik,...jk->...ij", J, J)
-    usable &= np.all(np.isfinite(cov), axis=(-1, -2))
+    cov = sigma**2 * (J @ np.swapaxes(J, -1, -2))
+    return _finish_triangulation(p, cov, obs)
+
+
+def _finish_triangulation(p: Array, cov: Array, obs: NDArray[np.bool_]):
+    both = obs[:, :, 0] & obs[:, :, 1]
+    usable = both & np.all(np.isfinite(p), axis=-1) & np.all(np.isfinite(cov), axis=(-1, -2))
     p = np.where(usable[..., None], p, np.nan)
     skipped = {
         "one_camera_only": np.sum(obs[:, :, 0] ^ obs[:, :, 1], axis=(1, 2)),
@@ -129,7 +141,7 @@ def weighted_kabsch(
     gc = np.sum(W * np.nan_to_num(g_G), axis=1) / sw_safe[:, None]
     a = np.where(W > 0, np.nan_to_num(p_C) - pc[:, None], 0.0)
     b = np.where(W > 0, np.nan_to_num(g_G) - gc[:, None], 0.0)
-    Hm = np.einsum("bk,bki,bkj->bij", w, b, a)  # sum w g p^T
+    Hm = np.swapaxes(w[..., None] * b, -1, -2) @ a  # sum w g p^T
     U, S, Vt = np.linalg.svd(Hm)
     d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
     D = np.zeros_like(Hm)
@@ -140,8 +152,11 @@ def weighted_kabsch(
     ok &= S[:, 1] > 1e-9 * np.maximum(S[:, 0], 1e-300)  # not collinear
     o = pc - np.einsum("bij,bj->bi", R_CG, gc)
     # Information of a small rotation of the lever arms a_i (C frame): sum w [a x]^T [a x].
-    A = rot.skew(a)
-    info = np.einsum("bk,bkji,bkjl->bil", w, A, A)
+    # [a x]^T [a x] = |a|^2 I - a a^T
+    wa = w[..., None] * a
+    info = np.sum(w * np.sum(a * a, axis=-1), axis=1)[:, None, None] * np.eye(3) - (
+        np.swapaxes(wa, -1, -2) @ a
+    )
     R_GC = np.swapaxes(R_CG, -1, -2)
     eye = np.eye(3)
     info = np.where(ok[:, None, None], info, eye)
@@ -184,15 +199,15 @@ def photogrammetric_frames(
 ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
     """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3) and its mask."""
     B, n, N, _ = p_C.shape
-    R_GC = np.full((B, n, 3, 3), np.nan)
-    cov_G = np.full((B, n, 3, 3), np.nan)
     template = np.full((B, N, 3), np.nan)
     known = np.zeros((B, N), dtype=bool)
     has_G = np.zeros(B, dtype=bool)
     w_all = np.where(usable, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
+    known_at = np.zeros((B, n, N), dtype=bool)  # catalogued by epoch k (causal)
+    # Pass 1 (cheap loop): define G where it is not defined yet (Hu 2024 eq. 6-7), and give
+    # features seen for the first time their G coordinates from the G recovered at that epoch.
     for k in range(n):
         u = usable[:, k]
-        # define G (Hu 2024 eq. 6-7) where it is not defined yet and 3 features are visible
         new = ~has_G & (u.sum(axis=1) >= 3)
         if new.any():
             idx, okt = _best_triplet_batch(p_C[new, k], u[new])
@@ -202,24 +217,30 @@ def photogrammetric_frames(
                 pk = p_C[runs, k]
                 m = [pk[np.arange(len(runs)), idx[:, j]] for j in range(3)]
                 Rg = g_frame_from_points(m[0], m[1], m[2])
-                g = np.einsum("bij,bkj->bki", Rg, pk - m[0][:, None])
+                g = (pk - m[0][:, None]) @ np.swapaxes(Rg, -1, -2)
                 template[runs] = np.where(u[runs][..., None], g, np.nan)
                 known[runs] = u[runs]
                 has_G[runs] = True
-        active = has_G & ((u & known).sum(axis=1) >= 3)
-        if not active.any():
-            continue
-        w = np.where(u & known, w_all[:, k], 0.0)[active]
-        Rgc, o, cg, ok = weighted_kabsch(p_C[active, k], template[active], w)
-        runs = np.flatnonzero(active)[ok]
-        R_GC[runs, k] = Rgc[ok]
-        cov_G[runs, k] = cg[ok]
-        # features seen for the first time get their G coordinates from the recovered G
-        fresh = u[runs] & ~known[runs]
-        if fresh.any():
-            g = np.einsum("bij,bkj->bki", Rgc[ok], p_C[runs, k] - o[ok][:, None])
-            template[runs] = np.where(fresh[..., None], g, template[runs])
-            known[runs] |= fresh
+        fresh_runs = has_G & np.any(u & ~known, axis=1) & ((u & known).sum(axis=1) >= 3)
+        if fresh_runs.any():
+            r_ = np.flatnonzero(fresh_runs)
+            w = np.where(u[r_] & known[r_], w_all[r_, k], 0.0)
+            Rgc, o, _, ok = weighted_kabsch(p_C[r_, k], template[r_], w)
+            r_, Rgc, o = r_[ok], Rgc[ok], o[ok]
+            fresh = u[r_] & ~known[r_]
+            g = (p_C[r_, k] - o[:, None]) @ np.swapaxes(Rgc, -1, -2)
+            template[r_] = np.where(fresh[..., None], g, template[r_])
+            known[r_] |= fresh
+        known_at[:, k] = known
+    # Pass 2 (vectorised over runs and epochs): G at every epoch from the visible features
+    # catalogued by then (Kabsch), so G is kept through occlusions of the defining triplet.
+    use = usable & known_at
+    w = np.where(use, w_all, 0.0).reshape(B * n, N)
+    tmpl = np.broadcast_to(template[:, None], (B, n, N, 3)).reshape(B * n, N, 3)
+    Rgc, _, cg, ok = weighted_kabsch(p_C.reshape(B * n, N, 3), tmpl, w)
+    ok = ok.reshape(B, n)
+    R_GC = np.where(ok[..., None, None], Rgc.reshape(B, n, 3, 3), np.nan)
+    cov_G = np.where(ok[..., None, None], cg.reshape(B, n, 3, 3), np.nan)
     return R_GC, cov_G, template, known
 
 
@@ -292,9 +313,10 @@ def identify_and_dpacf(
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
     a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
     w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
-    N = np.cumsum(w[..., None, None] * np.einsum("...ki,...kj->...ij", a, a), axis=1)
-    r = np.cumsum(w[..., None] * np.einsum("...ki,...k->...i", a, b), axis=1)
-    bb = np.cumsum(w * np.einsum("...k,...k->...", b, b), axis=1)
+    aT = np.swapaxes(a, -1, -2)
+    N = np.cumsum(w[..., None, None] * (aT @ a), axis=1)
+    r = np.cumsum(w[..., None] * (aT @ b[..., None])[..., 0], axis=1)
+    bb = np.cumsum(w * np.sum(b * b, axis=-1), axis=1)
     cnt = np.cumsum(ok, axis=1)
     if delay > 0:
         # causality: the rate at epoch j uses attitudes up to j + h, so epoch k may only use
@@ -303,6 +325,11 @@ def identify_and_dpacf(
             np.concatenate([np.zeros_like(x[:, :delay]), x[:, :-delay]], axis=1)
             for x in (N, r, bb, cnt)
         )
+    # The identification is re-solved every `ls_every` epochs and held in between (the
+    # attitude measurement still uses the G attitude of every epoch).
+    held = (np.arange(n) // s.ls_every) * s.ls_every
+    sel = np.unique(held)
+    N, r, bb, cnt = N[:, sel], r[:, sel], bb[:, sel], cnt[:, sel]
     d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
     Ns = N / (d[..., :, None] * d[..., None, :])
     ev = np.linalg.eigvalsh(Ns)
@@ -341,6 +368,9 @@ def identify_and_dpacf(
     cov_phi = Jphi @ cov_l @ np.swapaxes(Jphi, -1, -2)
     sig_phi = np.sqrt(np.max(np.linalg.eigvalsh(np.nan_to_num(cov_phi, nan=1e6)), axis=-1))
     valid &= sig_phi < s.max_dpacf_sigma_rad
+    # back to every epoch (hold the latest solution)
+    pos = np.searchsorted(sel, held)
+    R_GT, lam, cov_phi, valid = R_GT[:, pos], lam[:, pos], cov_phi[:, pos], valid[:, pos]
     R_TG = np.swapaxes(R_GT, -1, -2)
     R_TI = R_TG @ _finite_or_identity(R_GI)
     cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
@@ -363,8 +393,8 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_CL = rot.quat_to_matrix(np.stack([m.q_CL for m in meas_list]))  # (B,n,3,3)
     R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
     R_LC = np.swapaxes(R_CL, -1, -2)
-    p_L = np.einsum("bnij,bnkj->bnki", R_LC, p_C)
-    cov_L = np.einsum("bnij,bnkjl,bnml->bnkim", R_LC, cov_C, R_LC)
+    p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
+    cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
     R_GC, cov_G, template, known = photogrammetric_frames(p_C, cov_C, usable)
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
