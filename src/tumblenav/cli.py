@@ -13,6 +13,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from tumblenav.errors import InputError
@@ -72,7 +73,12 @@ def simulate(
 @app.command()
 def estimate(
     scenario: ScenarioArg,
-    estimator: Annotated[str, typer.Option("--estimator", "-e", help="see `tumblenav estimators`")],
+    estimator: Annotated[
+        str | None,
+        typer.Option(
+            "--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"
+        ),
+    ] = None,
     output: OutOpt = Path("out/estimate"),
     measurements: Annotated[
         Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
@@ -90,7 +96,12 @@ def estimate(
 @app.command()
 def montecarlo(
     scenario: ScenarioArg,
-    estimator: Annotated[str, typer.Option("--estimator", "-e", help="see `tumblenav estimators`")],
+    estimator: Annotated[
+        str | None,
+        typer.Option(
+            "--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"
+        ),
+    ] = None,
     runs: Annotated[int, typer.Option(min=1, help="number of runs")] = 20,
     workers: Annotated[
         int | None, typer.Option(min=1, help="processes (default: all cores)")
@@ -148,7 +159,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         app(args=argv, standalone_mode=False)
     except InputError as exc:
-        err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
@@ -168,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
         if os.environ.get("TUMBLENAV_DEBUG"):
             raise
         err.print(
-            f"[bold red]internal error:[/] {exc.__class__.__name__}: {exc} "
+            f"[bold red]internal error:[/] {exc.__class__.__name__}: {escape(str(exc))} "
             "(set TUMBLENAV_DEBUG=1 for the traceback)",
             highlight=False,
             soft_wrap=True,

@@ -120,7 +120,11 @@ def estimates_dataset(history, scenario: str, estimator: str, x_true=None) -> xr
         val = history.x[:, lay.nom(b.name)]
         sig = history.sigma(b.name)
         if b.kind == "quat":
-            data[b.name] = (("time", "quat"), val, {"description": f"{b.name} q_TI [x,y,z,w]"})
+            data[b.name] = (
+                ("time", "quat"),
+                val,
+                {"units": "1", "description": f"{b.name} q_TI [x,y,z,w]"},
+            )
             data[f"sigma_{b.name}"] = (
                 ("time", "xyz"),
                 sig,

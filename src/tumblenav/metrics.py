@@ -11,6 +11,7 @@ summary number is the RMS of that curve over the steady-state window.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,14 +97,21 @@ def window_mask(t: Array, window: tuple[float, float]) -> NDArray[np.bool_]:
     return (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
 
 
+def nanmean_quiet(a: Array, axis=None) -> Array:
+    """``np.nanmean`` that quietly gives NaN for all-NaN slices (runs not started yet)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(a, axis=axis)
+
+
 def rmse_over_runs(errors: Array) -> Array:
     """Hu 2024 eq. 45: (runs, n) error magnitudes -> (n,) RMSE across runs (NaN-aware)."""
-    return np.sqrt(np.nanmean(np.asarray(errors) ** 2, axis=0))
+    return np.sqrt(nanmean_quiet(np.asarray(errors) ** 2, axis=0))
 
 
 def rmse_over_time(err: Array, t: Array, window: tuple[float, float]) -> float:
     m = window_mask(t, window)
-    return float(np.sqrt(np.nanmean(np.asarray(err)[..., m] ** 2)))
+    return float(np.sqrt(nanmean_quiet(np.asarray(err)[..., m] ** 2)))
 
 
 def chi2_bounds(dof: int, n_avg: int, p: float = 0.95) -> tuple[float, float]:
@@ -127,8 +135,7 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
     m = window_mask(t, window)
     valid = np.isfinite(v) & (d > 0)
     norm = np.where(valid, v / np.where(d > 0, d, 1.0), np.nan)
-    with np.errstate(invalid="ignore"):
-        per_t = np.nanmean(norm[:, m], axis=0)
+    per_t = nanmean_quiet(norm[:, m], axis=0)
     runs = v.shape[0]
     dof_typ = int(np.round(np.nanmedian(np.where(valid, d, np.nan)))) if valid.any() else 0
     if dof_typ == 0 or not np.isfinite(per_t).any():

@@ -79,6 +79,7 @@ def run_estimate(
 ) -> dict[str, Any]:
     """One run: simulate (or read) measurements, estimate, evaluate, write files and figures."""
     scenario = load_scenario(scenario_ref)
+    estimator = estimator or scenario.estimator.name
     est = est_base.get(estimator)
     con = console or Console(stderr=True)
     ss = run_seed(scenario.montecarlo.seed if seed is None else seed, 0)
@@ -137,6 +138,7 @@ def run_montecarlo(
 ) -> dict:
     """A resumable campaign plus its figures (RMSE vs time, NEES vs time)."""
     scenario = scenario or load_scenario(scenario_ref)
+    estimator = estimator or scenario.estimator.name
     est_base.get(estimator)
     summary = runner.run_campaign(
         scenario,
@@ -172,8 +174,7 @@ def campaign_figures(folder: Path, scenario: Scenario, estimator: str, runs: int
             f"{scenario.name}: Monte Carlo RMSE over {len(cons['runs'])} runs",
             window=scenario.window_s,
         )
-    with np.errstate(invalid="ignore"):
-        nees = np.nanmean(cons["nees"], axis=0) / cons["nees_dof"]
+    nees = metrics.nanmean_quiet(cons["nees"], axis=0) / cons["nees_dof"]
     lo, hi = metrics.chi2_bounds(cons["nees_dof"], len(cons["runs"]))
     figures.plot_consistency(
         t,

@@ -245,7 +245,6 @@ class StereoSensorConfig(_Model):
         0.0, ge=0, lt=45, description="convergent rig: inward tilt of each camera"
     )
     noise: NoiseConfig
-    rate_hz: float | None = Field(None, gt=0, description="default: the scenario's rate_hz")
 
     @field_validator("baseline_m")
     @classmethod
@@ -291,7 +290,6 @@ class DepthSensorConfig(_Model):
     range_noise_m: float = Field(0.01, ge=0)
     outlier_fraction: float = Field(0.0, ge=0, le=1)
     max_range_m: float = Field(100.0, gt=0)
-    rate_hz: float | None = Field(None, gt=0)
 
 
 class OcclusionWindow(_Model):
@@ -318,11 +316,11 @@ class OcclusionConfig(_Model):
 
 
 class ProcessNoiseConfig(_Model):
-    """Process noise used by the truth (optional) and by the estimators."""
+    """Process noise assumed by the estimators (the truth is torque-free and force-free
+    apart from gravity)."""
 
     translational_m2_s4: float = Field(2e-6, ge=0, description="sigma_t^2 (Hu 2024 Sec. 5)")
     rotational_rad2_s4: float = Field(2.5e-5, ge=0, description="sigma_r^2 (Hu 2024 Sec. 5)")
-    in_truth: bool = Field(False, description="also drive the truth with this noise")
 
 
 class EstimatorConfig(_Model):
@@ -436,6 +434,8 @@ def validate_scenario(data: Any, source: str = "<scenario>") -> Scenario:
     """Validate a parsed YAML mapping; raise InputError naming ``source`` and the key path."""
     if not isinstance(data, dict):
         raise InputError("a scenario must be a YAML mapping of keys to values", source)
+    if isinstance(data.get("sensor"), dict) and "kind" not in data["sensor"]:
+        data = {**data, "sensor": {"kind": "stereo", **data["sensor"]}}  # the documented default
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:

@@ -322,7 +322,12 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
             orbit.mu_m3_s2,
         )
         rel = _orbit_truth(
-            tuple(r0), tuple(v0), tuple(tg.r0_L_m), tuple(tg.v0_L_m_s), t.tobytes(), orbit.j2,
+            tuple(r0),
+            tuple(v0),
+            tuple(tg.r0_L_m),
+            tuple(tg.v0_L_m_s),
+            t.tobytes(),
+            orbit.j2,
             orbit.mu_m3_s2,
         )
         r_L, v_L = np.array(rel.r_L), np.array(rel.v_L)

@@ -106,7 +106,10 @@ def run_campaign(
             "runs_requested": runs,
         }
     )
-    (store.root / "scenario.yaml").write_text(scenario_to_yaml(scenario))
+    io._atomic(
+        store.root / "scenario.yaml",
+        lambda tmp: tmp.write_text(scenario_to_yaml(scenario), encoding="utf-8"),
+    )
     todo = sorted(set(range(runs)) - store.done())
     workers = max(1, workers or os.cpu_count() or 1)
     con = console or Console(stderr=True)

@@ -389,8 +389,9 @@ def run_filter(
             active |= start
         if active.any():
             use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
-            x, P, nis_k, dof_k, rej = _update(x, P, fe, k, lay, use_att, gate, att_inflation,
-                                              active)
+            x, P, nis_k, dof_k, rej = _update(
+                x, P, fe, k, lay, use_att, gate, att_inflation, active
+            )
             x, P = constrain_inertia(x, P, lay, active)
             bad = active & _diverged(x, P, lay)
             if bad.any():  # a run that blew up is stopped (NaN from here on) and counted
@@ -577,8 +578,9 @@ def canonical_frame(template_G: Array, known: NDArray[np.bool_], truth: Any) -> 
 
     G is fixed to the target by the template (the features' G coordinates); aligning the
     template with the true feature positions in T gives ``R_GT``; the true inertia in G then
-    has the DPACF frame ``R_GT'`` (Hu 2024 eq. 17). T' and T share principal axes, so
-    ``R_T'T = R_GT'^T R_GT`` is snapped to the nearest signed permutation (det +1).
+    has the DPACF frame ``R_GT'`` (Hu 2024 eq. 17) and ``R_T'T = R_GT'^T R_GT``. When the
+    scenario's T is itself principal (diagonal inertia) the two share principal axes and
+    ``R_T'T`` is snapped to the nearest signed permutation (det +1).
     """
     g = template_G[known]
     f = truth.features_T[known]
@@ -586,13 +588,20 @@ def canonical_frame(template_G: Array, known: NDArray[np.bool_], truth: Any) -> 
     U, _, Vt = np.linalg.svd(H)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R_GT = Vt.T @ D @ U.T
-    R_GTc = principal_frame(R_GT @ truth.inertia_T @ R_GT.T)
+    I_T = np.asarray(truth.inertia_T, dtype=float)
+    R_GTc = principal_frame(R_GT @ I_T @ R_GT.T)
     M = R_GTc.T @ R_GT
-    snap = np.zeros((3, 3))
-    for i in range(3):
-        j = int(np.argmax(np.abs(M[i])))
-        snap[i, j] = np.sign(M[i, j])
-    return snap
+    if np.allclose(I_T, np.diag(np.diag(I_T)), rtol=0, atol=1e-12 * np.abs(I_T).max()):
+        # T is principal too: the two frames differ by a signed permutation exactly (the
+        # template's noise only perturbs M slightly), so snap to it
+        snap = np.zeros((3, 3))
+        for i in range(3):
+            j = int(np.argmax(np.abs(M[i])))
+            snap[i, j] = np.sign(M[i, j])
+        return snap
+    # the scenario's T is not principal (full inertia tensor): keep the rotation itself
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
 def truth_in_frame(truth: Any, R_TcT: Array, lay: StateLayout) -> Array:
