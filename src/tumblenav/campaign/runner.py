@@ -236,6 +236,12 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
         "window_s": list(window),
     }
     if errs:
+        first = next(iter(errs.values()))
+        in_window = metrics.window_mask(t, window)
+        # runs that produced no estimate in the window are excluded from the RMSE: say so
+        summary["runs_without_estimate"] = int(
+            np.sum(~np.any(np.isfinite(first[:, in_window]), axis=1))
+        )
         summary["rmse"] = {
             key: metrics.rmse_over_time(metrics.rmse_over_runs(e), t, window)
             for key, e in errs.items()

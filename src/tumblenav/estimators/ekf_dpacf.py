@@ -80,7 +80,10 @@ class HuTuning(BaseModel):
     gate_probability: float | None = Field(
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
-    max_dpacf_sigma_rad: float = Field(0.05, gt=0, description="start once DPACF is this good")
+    max_dpacf_sigma_rad: float = Field(0.1, gt=0, description="start once DPACF is this good")
+    flip_epochs: int = Field(
+        50, ge=1, description="DPACF measurements a half turn away before the filter follows"
+    )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
 
@@ -358,6 +361,8 @@ def run_filter(
     err = np.full((B, n, d), np.nan) if truths is not None else None
     rejected = np.zeros(B, dtype=np.int64)
     diverged = np.zeros(B, dtype=bool)
+    flip_votes = np.zeros(B, dtype=np.int64)
+    flips = np.zeros(B, dtype=np.int64)
     xt = None
     if truths is not None:
         xt = np.stack(
@@ -389,6 +394,10 @@ def run_filter(
             active |= start
         if active.any():
             use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
+            if use_att:
+                x, P, flip_votes = _follow_dpacf_branch(
+                    x, P, fe.q_TI[:, k], active, lay, flip_votes, tun.flip_epochs, flips
+                )
             x, P, nis_k, dof_k, rej = _update(
                 x, P, fe, k, lay, use_att, gate, att_inflation, active
             )
@@ -424,7 +433,57 @@ def run_filter(
         "rejected": rejected,
         "diverged": diverged,
         "x_true": xt,
+        "frame_flips": flips,
     }
+
+
+_FLIPS = np.array(
+    [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+)
+
+
+def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
+    """Keep the filter on the principal frame that the DPACF rule selects now.
+
+    The DPACF frame is unique for a given inertia, but the identified inertia changes as
+    data accumulate; early on it can select the frame turned by 180 degrees about a
+    principal axis (a 180-degree attitude innovation that no linear update can absorb).
+    When the DPACF attitude and the filter's differ by such a turn for ``need`` consecutive
+    measurements, the filter state is turned accordingly: the turn ``F`` is a symmetry of
+    the torque-free model (``p`` is unchanged), so ``q <- F q``, ``omega <- F omega``,
+    ``f_i <- F f_i`` and ``P <- J P J^T`` are exact. The turns are counted.
+    """
+    ok = active & np.all(np.isfinite(q_meas), axis=-1)
+    if not ok.any():
+        return x, P, votes
+    R_est = rot.quat_to_matrix(x[:, lay.nom("attitude")])
+    R_meas = rot.quat_to_matrix(np.where(ok[:, None], q_meas, rot.IDENTITY))
+    D = R_meas @ np.swapaxes(R_est, -1, -2)  # in T: measured frame relative to the filter's
+    dist = np.linalg.norm(D[:, None] - _FLIPS[None], axis=(-1, -2))  # (B, 3)
+    which = np.argmin(dist, axis=1)
+    near = ok & (dist[np.arange(len(D)), which] < 1.0)  # within ~40 deg of a half turn
+    votes = np.where(near, votes + 1, 0)
+    go = votes >= need
+    if go.any():
+        F = _FLIPS[which[go]]
+        b = np.flatnonzero(go)
+        qF = rot.matrix_to_quat(F)
+        x[b, lay.nom("attitude")] = rot.quat_multiply(qF, x[b, lay.nom("attitude")])
+        x[b, lay.nom("rate")] = (F @ x[b, lay.nom("rate"), None])[..., 0]
+        N = (lay.nominal_dim - lay.nom("features").start) // 3
+        f = x[b, lay.nom("features")].reshape(len(b), N, 3)
+        x[b, lay.nom("features")] = (f @ np.swapaxes(F, -1, -2)).reshape(len(b), -1)
+        J = np.tile(np.eye(lay.dim), (len(b), 1, 1))
+        for name in ("attitude", "rate"):
+            sl = lay.err(name)
+            J[:, sl, sl] = F
+        sf0 = lay.err("features").start
+        for i in range(N):
+            J[:, sf0 + 3 * i : sf0 + 3 * i + 3, sf0 + 3 * i : sf0 + 3 * i + 3] = F
+        P[b] = J @ P[b] @ np.swapaxes(J, -1, -2)
+        votes[b] = 0
+        flips[b] += 1
+    return x, P, votes
 
 
 def _diverged(x: Array, P: Array, lay: StateLayout) -> NDArray[np.bool_]:
@@ -647,6 +706,7 @@ class HuEKF:
         fe = res["frontend"]
         skipped = {k: int(v[0]) for k, v in fe.skipped.items()}
         skipped["gated_out"] = int(res["rejected"][0])
+        skipped["frame_flips"] = int(res["frame_flips"][0])
         return EstimateHistory(
             t=res["t"],
             x=res["x"][0],
@@ -679,6 +739,7 @@ class HuEKF:
             skipped = {k: int(v[b]) for k, v in fe.skipped.items()}
             skipped["gated_out"] = int(res["rejected"][b])
             skipped["diverged"] = int(res["diverged"][b])
+            skipped["frame_flips"] = int(res["frame_flips"][b])
             r = RunErrors(
                 t=res["t"],
                 errors=errors,
