@@ -193,7 +193,7 @@ def _execute_dask(
             "--scheduler needs dask.distributed: pip install 'tumblenav[cluster]'"
         ) from None
     try:
-        client = Client(address, timeout="10s")
+        client = Client(address, timeout="5s")
     except OSError as exc:
         raise InputError(f"cannot reach the Dask scheduler ({exc})", address) from None
     with client:
@@ -245,6 +245,20 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
         summary["rmse"] = {
             key: metrics.rmse_over_time(metrics.rmse_over_runs(e), t, window)
             for key, e in errs.items()
+        }
+        # RMSE over runs is dominated by the worst runs; the spread of the per-run RMS in
+        # the window tells the typical run from the outliers
+        per_run = {
+            k: np.sqrt(metrics.nanmean_quiet(e[:, in_window] ** 2, axis=1)) for k, e in errs.items()
+        }
+        summary["per_run"] = {
+            k: {
+                "median": float(np.nanmedian(v)),
+                "p90": float(np.nanpercentile(v, 90)),
+                "max": float(np.nanmax(v)),
+            }
+            for k, v in per_run.items()
+            if np.isfinite(v).any()
         }
         summary["nees"] = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
         summary["nis"] = metrics.consistency(cons["nis"], cons["nis_dof"], t, window)

@@ -80,7 +80,7 @@ class HuTuning(BaseModel):
     gate_probability: float | None = Field(
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
-    max_dpacf_sigma_rad: float = Field(0.1, gt=0, description="start once DPACF is this good")
+    max_dpacf_sigma_rad: float = Field(0.05, gt=0, description="start once DPACF is this good")
     flip_epochs: int = Field(
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
     )

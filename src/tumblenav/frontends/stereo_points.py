@@ -47,7 +47,7 @@ class FrontEndSettings:
     min_ls_epochs: int = 20  # epochs of rate data before the inertia is trusted
     max_condition: float = 1e8  # of the column-scaled normal equations
     min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
-    max_dpacf_sigma_rad: float = 0.1  # the DPACF frame is used once its 1-sigma error is below
+    max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
     ls_every: int = 5  # epochs between least-squares solutions
 
 

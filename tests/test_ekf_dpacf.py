@@ -1,0 +1,428 @@
+"""Hu 2024 error-state EKF pieces: Jacobians against central differences through boxplus and
+boxminus, the discretisation against scipy, the nominal propagation against a tight
+integration, the inertia constraint and the DPACF frame used for evaluation.
+
+All randomness is seeded: hypothesis runs derandomized (tests/conftest.py) and the few numpy
+generators take their seed from hypothesis or from a literal.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from tumblenav import rotations as rot
+from tumblenav.dynamics.relative_orbit import cw_stm
+from tumblenav.estimators import ekf_dpacf as hu
+from tumblenav.frontends.inertia import inertia_ratios, principal_frame, principal_moments
+from tumblenav.testing import numerical_jacobian
+
+# --- strategies --------------------------------------------------------------------------
+
+quat = (
+    arrays(np.float64, 4, elements=st.floats(-1.0, 1.0))
+    .filter(lambda q: np.linalg.norm(q) > 0.1)
+    .map(lambda q: q / np.linalg.norm(q))
+)
+rate = arrays(np.float64, 3, elements=st.floats(-0.5, 0.5))  # rad/s, per axis
+# Second moments of the mass distribution a_i = int x_i^2 dm >= 0; the principal moments
+# I = [b + c, a + c, a + b] are then exactly the physical ones (triangle inequality).
+second_moments = arrays(np.float64, 3, elements=st.floats(0.1, 10.0))
+mean_motion = st.floats(0.0, 2e-3)  # rad/s (LEO: ~1.1e-3)
+vec3 = arrays(np.float64, 3, elements=st.floats(-50.0, 50.0))
+small3 = arrays(np.float64, 3, elements=st.floats(-0.5, 0.5))
+seeds = st.integers(0, 2**32 - 1)
+
+
+def moments_of(a):
+    """Principal moments (Ix, Iy, Iz) of a body with second moments ``a`` (any order)."""
+    return np.array([a[1] + a[2], a[0] + a[2], a[0] + a[1]])
+
+
+def ratios_of(a):
+    return inertia_ratios(moments_of(a))
+
+
+# --- core error dynamics (Hu 2024 eq. 29-30) ---------------------------------------------
+
+CORE = hu.layout(0)  # [q, omega, p, r, v]: nominal 16, error 15
+
+
+def nominal_step(x, dt, n):
+    """One step of the nominal model: RK4 attitude/rate and the closed-form CW solution."""
+    q, w = hu.propagate_rotation(x[0:4], x[4:7], x[7:10], dt)
+    rv = cw_stm(n, dt) @ x[10:16]
+    return np.concatenate([q, w, x[7:10], rv])
+
+
+def core_state(q, w, a, r, v):
+    return np.concatenate([q, w, ratios_of(a), r, 0.01 * v])
+
+
+@given(quat, rate, second_moments, vec3, vec3, mean_motion)
+def test_core_F_matches_numerical_jacobian_of_one_step(q, w, a, r, v, n):
+    """``Phi = exp(F dt)`` against d(step(x [+] dx) [-] step(x))/d(dx).
+
+    Both sides describe the same error dynamics only if ``core_F`` has the Hamilton signs
+    (dtheta' = -[w x] dtheta - domega) and the right M(omega, p), N(omega), E1, E2.
+    """
+    x = core_state(q, w, a, r, v)
+    F0 = hu.core_F(w, x[7:10], n)
+
+    # dt = 1 ms: F barely changes over the step; the difference is O(dt^2 |dF/dt|) < 1e-7
+    # (largest seen 9e-8 at |omega_i| = 0.5 rad/s), i.e. 1e-5 of dt |F| or better.
+    dt = 1e-3
+    Phi, _ = hu.discretise(F0, np.zeros((15, 15)), dt)
+    J = numerical_jacobian(
+        lambda y: nominal_step(y, dt, n), x, CORE.boxplus, CORE.boxminus, dim=CORE.dim
+    )
+    np.testing.assert_allclose(J, Phi, rtol=0, atol=1e-5 * max(1.0, dt * np.abs(F0).max()))
+
+    # dt = 0.1 s (the 10 Hz filter step): core_F is evaluated at the start of the step while
+    # the rate (hence F) moves during it, so exp(F0 dt) misses (dt^2 / 2) dF/dt at leading
+    # order.  Bound: dt * max|F(x1) - F(x0)| (twice the leading term), plus round-off.
+    dt = 0.1
+    Phi, _ = hu.discretise(F0, np.zeros((15, 15)), dt)
+    J = numerical_jacobian(
+        lambda y: nominal_step(y, dt, n), x, CORE.boxplus, CORE.boxminus, dim=CORE.dim
+    )
+    x1 = nominal_step(x, dt, n)
+    F1 = hu.core_F(x1[4:7], x1[7:10], n)
+    assert np.abs(J - Phi).max() <= dt * np.abs(F1 - F0).max() + 1e-7
+    # and the discrepancy is that variation: the exponential of the step-averaged F agrees
+    # to O(dt^3) (largest seen 2e-5).
+    assert np.abs(J - expm(0.5 * (F0 + F1) * dt)).max() <= 1e-4
+
+
+# --- feature measurement (Hu 2024 eq. 32, 35) --------------------------------------------
+
+
+@given(quat, quat, rate, second_moments, vec3, vec3, st.integers(1, 4), seeds)
+def test_feature_measurement_jacobian(q_TI, q_LI, w, a, r, v, n_feat, seed):
+    lay = hu.layout(n_feat)
+    feats = np.random.default_rng(seed).uniform(-3.0, 3.0, 3 * n_feat)  # m
+    x = np.concatenate([core_state(q_TI, w, a, r, v), feats])
+    R_LI = rot.quat_to_matrix(q_LI)
+    y, H = hu.feature_measurement(x, R_LI, lay, jac=True)
+    assert y.shape == (n_feat, 3) and H.shape == (3 * n_feat, lay.dim)
+    # the measurement itself: y_i = r + R_LI R_TI^T f_i
+    R_LT = R_LI @ rot.quat_to_matrix(q_TI).T
+    np.testing.assert_allclose(y, r + feats.reshape(-1, 3) @ R_LT.T, atol=1e-12)
+    J = numerical_jacobian(
+        lambda s: hu.feature_measurement(s, R_LI, lay)[0], x, lay.boxplus, dim=lay.dim
+    )
+    # central differences at eps = 1e-6: truncation ~1e-12 |f|, round-off ~1e-16 |y| / eps
+    # ~ 1e-8 for |y| ~ 100 m, so 1e-7 of the largest entry of H.
+    np.testing.assert_allclose(J, H, rtol=0, atol=1e-7 * np.abs(H).max())
+
+
+# --- inertia constraint (Hu 2024 eq. 19) -------------------------------------------------
+
+
+@given(second_moments, quat)
+def test_inertia_constraint_holds_for_any_physical_inertia(a, q):
+    # a full inertia matrix in some body frame: I = tr(S) 1 - S with S = R diag(a) R^T
+    R = rot.quat_to_matrix(q)
+    S = R @ np.diag(a) @ R.T
+    I = np.trace(S) * np.eye(3) - S
+    for moments in (principal_moments(I), principal_moments(I)[::-1], moments_of(a)):
+        p = inertia_ratios(moments)
+        assert abs(hu.inertia_constraint(p)) < 1e-12
+        assert np.all(np.abs(p) < 1.0)  # triangle inequality
+
+
+@given(arrays(np.float64, 3, elements=st.floats(-1.0, 1.0)))
+def test_inertia_constraint_gradient(p):
+    c, g = hu.inertia_constraint(p, jac=True)
+    assert c == hu.inertia_constraint(p)
+    J = numerical_jacobian(hu.inertia_constraint, p)
+    np.testing.assert_allclose(J, g[None, :], rtol=0, atol=1e-9)
+
+
+@given(
+    quat,
+    rate,
+    arrays(np.float64, 3, elements=st.floats(0.5, 5.0)),  # keeps |p_i| <= 0.82 (no clipping)
+    arrays(np.float64, 3, elements=st.floats(-1.0, 1.0)),
+    st.sampled_from([1e-2, 1e-4, 1e-6]),
+    seeds,
+)
+def test_constrain_inertia(q, w, a, direction, scale, seed):
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(2)
+    p = ratios_of(a) + scale * direction  # off the constraint surface
+    x = np.concatenate([q, w, p, rng.normal(0, 10, 6), rng.normal(0, 1, 6)])
+    L = rng.normal(0, 0.1, (lay.dim, lay.dim))
+    P = L @ L.T + 1e-6 * np.eye(lay.dim)
+    r = 1e-10
+    c0, g = hu.inertia_constraint(p, jac=True)
+    ep = lay.err("inertia")
+    s = g @ P[ep, ep] @ g
+
+    x1, P1 = hu.constrain_inertia(x[None], P[None], lay, r=r)
+    x1, P1 = x1[0], P1[0]
+    p1 = x1[lay.nom("inertia")]
+    c1 = hu.inertia_constraint(p1)
+    dp = p1 - p
+    # A scalar pseudo-measurement leaves c r / (s + r) of the *linearised* constraint
+    # (r-level); c is cubic in p, so the remainder is its second- and third-order terms,
+    # |dpx dpy pz + dpx dpz py + dpy dpz px + dpx dpy dpz| <= |dp|^2 + |dp|^3 (|p_i| < 1).
+    bound = abs(c0) * r / (s + r) + np.sum(dp**2) + np.sum(np.abs(dp)) ** 3 + 1e-14
+    assert abs(c1) <= bound
+    if scale <= 1e-6:  # small violation: reduced to the level of r
+        assert abs(c1) <= r
+    # the covariance along the constraint gradient collapses to (at most) r
+    assert g @ P1[ep, ep] @ g <= 1.01 * r
+    np.testing.assert_array_equal(P1, P1.T)
+    ev = np.linalg.eigvalsh(P1)
+    assert ev[0] >= -1e-12 * ev[-1]
+    # the attitude stays a unit quaternion
+    assert abs(np.linalg.norm(x1[lay.nom("attitude")]) - 1.0) < 1e-12
+    # runs that are not active are left alone
+    xb, Pb = np.stack([x, x]), np.stack([P, P])
+    x2, P2 = hu.constrain_inertia(xb, Pb, lay, active=np.array([True, False]), r=r)
+    np.testing.assert_array_equal(x2[0], x1)
+    np.testing.assert_array_equal(P2[0], P1)
+    np.testing.assert_array_equal(x2[1], x)
+    np.testing.assert_array_equal(P2[1], P)
+
+
+# --- discretisation (Hu 2024 eq. 38-39) --------------------------------------------------
+
+
+def van_loan(F, Qc, dt):
+    """Exact ``Q_k = int_0^dt exp(F s) Qc exp(F^T s) ds`` (Van Loan 1978)."""
+    d = F.shape[0]
+    M = np.zeros((2 * d, 2 * d))
+    M[:d, :d] = -F * dt
+    M[:d, d:] = Qc * dt
+    M[d:, d:] = F.T * dt
+    E = expm(M)
+    return E[d:, d:].T @ E[:d, d:]
+
+
+@given(rate, second_moments, mean_motion, st.floats(1e-8, 1e-4), st.floats(1e-8, 1e-2))
+def test_discretise(w, a, n, sigma_r2, sigma_t2):
+    dt = 0.1
+    p = ratios_of(a)
+    F = hu.core_F(w, p, n)
+    Qc = hu.core_Qc(p, sigma_r2, sigma_t2)
+    Phi, Qk = hu.discretise(F, Qc, dt)
+    A = F * dt
+    # Phi is the 4th-order Taylor polynomial of exp(A): the remainder is at most
+    # |A|^5 / 120 exp(|A|) (up to 4e-8 at |omega_i| = 0.5 rad/s; see the test below for 1e-9)
+    a2 = np.linalg.norm(A, 2)
+    assert np.linalg.norm(Phi - expm(A), 2) <= a2**5 / 120 * np.exp(a2) + 1e-14
+    # Q_k: symmetric positive semi-definite
+    np.testing.assert_array_equal(Qk, Qk.T)
+    ev = np.linalg.eigvalsh(Qk)
+    assert ev[0] >= -1e-12 * ev[-1]
+    # against the exact Van Loan integral, per entry relative to sqrt(Q_ii Q_jj): Q_k is its
+    # Taylor series through dt^3, so the remainder is the dt^4 term T4 plus O(dt^5).  The
+    # attitude block *starts* at dt^3 (sigma^2 dt^3 / 3), so T4 is first order in |F dt|
+    # relative to it (up to 0.23 |F dt|_2 seen, i.e. 2% at |omega_i| = 0.5 rad/s) and what
+    # is left after T4 is second order (up to 0.15 |F dt|_2^2 seen).
+    Qex = van_loan(F, Qc, dt)
+    F2 = F @ F
+    T4 = (F2 @ F @ Qc + 3 * F2 @ Qc @ F.T + 3 * F @ Qc @ F2.T + Qc @ (F2 @ F).T) * dt**4 / 24
+    d = np.sqrt(np.diag(Qex))
+    d = np.where(d > 0, d, 1.0)
+    assert np.abs((Qex - Qk - T4) / np.outer(d, d)).max() <= a2**2
+
+
+@given(
+    arrays(np.float64, 3, elements=st.floats(-0.15, 0.15)), second_moments, mean_motion
+)
+def test_discretise_phi_matches_expm_at_10_hz(w, a, n):
+    # Hu 2024 scenario: omega0 = [0.1, 0.1, 0.1] rad/s, 10 Hz; the 4th-order series is then
+    # within 1e-9 of exp(F dt) (largest seen 3e-10 at |omega_i| = 0.15 rad/s).
+    F = hu.core_F(w, ratios_of(a), n)
+    Phi, _ = hu.discretise(F, np.zeros((15, 15)), 0.1)
+    np.testing.assert_allclose(Phi, expm(F * 0.1), rtol=0, atol=1e-9)
+
+
+# --- nominal rotation (Hu 2024 eq. 2, 21) ------------------------------------------------
+
+
+def integrate_rotation(q0, w0, p, t_eval):
+    """Tight DOP853 solution of quaternion kinematics + Euler's equations (ratio form)."""
+
+    def rhs(_t, y):
+        return np.concatenate(
+            [rot.quat_derivative(y[:4], y[4:]), hu.euler_ratios_rhs(y[4:], p)]
+        )
+
+    sol = solve_ivp(
+        rhs, (0.0, t_eval[-1]), np.concatenate([q0, w0]), method="DOP853",
+        rtol=1e-13, atol=1e-14, t_eval=t_eval,
+    )  # fmt: skip
+    assert sol.success
+    return sol.y[:4].T / np.linalg.norm(sol.y[:4].T, axis=1, keepdims=True), sol.y[4:].T
+
+
+def rk4_history(q, w, p, dt, steps):
+    qs, ws = [], []
+    for _ in range(steps):
+        q, w = hu.propagate_rotation(q, w, p, dt)
+        qs.append(q)
+        ws.append(w)
+    return np.array(qs), np.array(ws)
+
+
+@settings(max_examples=20)
+@given(quat, arrays(np.float64, 3, elements=st.floats(-0.3, 0.3)), second_moments)
+def test_propagate_rotation_matches_tight_integration(q0, w0, a):
+    p = ratios_of(a)
+    dt, steps = 0.1, 100  # 10 s
+    qs, ws = rk4_history(q0, w0, p, dt, steps)
+    np.testing.assert_allclose(np.linalg.norm(qs, axis=1), 1.0, rtol=0, atol=1e-15)
+    q_ref, w_ref = integrate_rotation(q0, w0, p, dt * np.arange(1, steps + 1))
+    # RK4's global error grows like T |omega|^5 dt^4: < 1e-7 for |omega_i| <= 0.3 rad/s
+    # (3x Hu 2024's 0.1 rad/s; largest seen 4e-8).  Faster tumbles: see the order test.
+    assert np.linalg.norm(rot.boxminus(qs, q_ref), axis=1).max() < 1e-7
+    assert np.abs(ws - w_ref).max() < 1e-7
+
+
+def test_propagate_rotation_is_fourth_order_at_fast_rates():
+    rng = np.random.default_rng(20240501)
+    for _ in range(5):
+        q0 = rot.quat_normalize(rng.normal(size=4))
+        w0 = rng.uniform(-0.5, 0.5, 3)
+        p = ratios_of(rng.uniform(0.1, 10.0, 3))
+        q_ref, w_ref = integrate_rotation(q0, w0, p, np.array([10.0]))
+        errs = []
+        for dt in (0.2, 0.1):
+            qs, ws = rk4_history(q0, w0, p, dt, round(10.0 / dt))
+            e_q = np.linalg.norm(rot.boxminus(qs[-1], q_ref[-1]))
+            errs.append(max(e_q, np.abs(ws[-1] - w_ref[-1]).max()))
+        assert errs[1] < 1e-6
+        assert 8.0 < errs[0] / errs[1] < 32.0  # 2^4 = 16 for a 4th-order method
+
+
+# --- state layout ------------------------------------------------------------------------
+
+
+@given(quat, rate, second_moments, vec3, vec3, small3, st.integers(0, 3), seeds)
+def test_layout_boxplus_boxminus_round_trip(q, w, a, r, v, dtheta, n_feat, seed):
+    lay = hu.layout(n_feat)
+    rng = np.random.default_rng(seed)
+    x = np.concatenate([core_state(q, w, a, r, v), rng.normal(0, 2, 3 * n_feat)])
+    dx = np.concatenate([3 * dtheta, rng.normal(0, 1, lay.dim - 3)])  # |dtheta| <= 2.6 < pi
+    assert lay.dim == 15 + 3 * n_feat and lay.nominal_dim == 16 + 3 * n_feat
+    y = lay.boxplus(x, dx)
+    np.testing.assert_allclose(lay.boxminus(y, x), dx, rtol=0, atol=1e-10)
+    z = lay.boxplus(x, lay.boxminus(y, x))
+    np.testing.assert_allclose(rot.quat_to_matrix(z[:4]), rot.quat_to_matrix(y[:4]), atol=1e-12)
+    np.testing.assert_allclose(z[4:], y[4:], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lay.boxminus(x, x), 0.0, atol=1e-15)
+
+
+# --- the DPACF frame for evaluation -------------------------------------------------------
+
+
+def make_truth(q_TI, omega_T, inertia_T, features_T):
+    return SimpleNamespace(
+        t=np.array([0.0, 1.0]),
+        q_TI=np.stack([q_TI, q_TI]),
+        omega_TI_T=np.stack([omega_T, omega_T]),
+        r_L=np.array([[1.0, 2.0, 3.0], [1.1, 2.2, 3.3]]),
+        v_L=np.array([[0.1, 0.2, 0.3], [0.1, 0.2, 0.3]]),
+        features_T=features_T,
+        inertia_T=inertia_T,
+    )
+
+
+def is_signed_permutation(M):
+    return (
+        np.all(np.isin(M, (-1.0, 0.0, 1.0)))
+        and np.all(np.abs(M).sum(axis=0) == 1)
+        and np.all(np.abs(M).sum(axis=1) == 1)
+    )
+
+
+@given(quat, quat, rate, second_moments, vec3, seeds)
+def test_canonical_frame_and_truth_in_frame(q_GT, q_TI, w, a, t_G, seed):
+    moments = moments_of(a)
+    srt = np.sort(moments)
+    # DPACF needs distinct moments (an axisymmetric body has no unique principal frame)
+    assume(np.min(np.diff(srt)) > 1e-3 * srt[-1])
+    rng = np.random.default_rng(seed)
+    feats = rng.uniform(-2.0, 2.0, (6, 3))
+    R_GT = rot.quat_to_matrix(q_GT)
+    template_G = feats @ R_GT.T + t_G  # G: T rotated and shifted, the template is exact
+    truth = make_truth(q_TI, w, np.diag(moments), feats)
+    known = np.ones(6, dtype=bool)
+
+    R = hu.canonical_frame(template_G, known, truth)
+    assert is_signed_permutation(R)
+    assert np.linalg.det(R) == 1.0
+    # not merely snapped: with an exact template R_T'T = R_GT'^T R_GT is a signed permutation
+    R_GTc = principal_frame(R_GT @ np.diag(moments) @ R_GT.T)
+    np.testing.assert_allclose(R, R_GTc.T @ R_GT, atol=1e-8)
+
+    lay = hu.layout(6)
+    x = hu.truth_in_frame(truth, R, lay)
+    assert x.shape == (2, lay.nominal_dim)
+    p = x[:, lay.nom("inertia")]
+    np.testing.assert_allclose(hu.inertia_constraint(p), 0.0, atol=1e-12)
+    # DPACF rule 1: moments in T' are sorted, x the largest, z the smallest
+    np.testing.assert_allclose(p[0], inertia_ratios(srt[::-1]), atol=1e-12)
+    np.testing.assert_allclose(
+        rot.quat_to_matrix(x[0, lay.nom("attitude")]), R @ rot.quat_to_matrix(q_TI), atol=1e-12
+    )
+    np.testing.assert_allclose(x[0, lay.nom("rate")], R @ w, atol=1e-15)
+    np.testing.assert_allclose(x[:, lay.nom("position")], truth.r_L)
+    np.testing.assert_allclose(x[:, lay.nom("velocity")], truth.v_L)
+    # the features in T' are the template seen from the DPACF frame: R_T'G (g - t_G)
+    f_Tc = x[0, lay.nom("features")].reshape(-1, 3)
+    np.testing.assert_allclose(f_Tc, (template_G - t_G) @ R_GTc, atol=1e-9)
+
+
+@given(quat, quat, rate, second_moments, seeds)
+def test_canonical_frame_full_inertia_tensor(q_GT, q_PT, w, a, seed):
+    """A scenario T that is not principal (full inertia tensor): R_T'T is the rotation onto
+    the DPACF principal frame, in which the true inertia is diagonal and sorted."""
+    moments = moments_of(a)
+    srt = np.sort(moments)
+    assume(np.min(np.diff(srt)) > 1e-3 * srt[-1])
+    R_TP = rot.quat_to_matrix(q_PT).T  # principal axes of the body, in T
+    I_T = R_TP @ np.diag(moments) @ R_TP.T
+    assume(np.abs(I_T - np.diag(np.diag(I_T))).max() > 1e-6 * srt[-1])
+    feats = np.random.default_rng(seed).uniform(-2.0, 2.0, (5, 3))
+    R_GT = rot.quat_to_matrix(q_GT)
+    truth = make_truth(rot.IDENTITY, w, I_T, feats)
+    R = hu.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert abs(np.linalg.det(R) - 1.0) < 1e-12
+    R_GTc = principal_frame(R_GT @ I_T @ R_GT.T)
+    np.testing.assert_allclose(R, R_GTc.T @ R_GT, atol=1e-8)
+    I_Tc = R @ I_T @ R.T
+    np.testing.assert_allclose(I_Tc, np.diag(srt[::-1]), rtol=0, atol=1e-9 * srt[-1])
+    p = hu.truth_in_frame(truth, R, hu.layout(5))[:, 7:10]
+    np.testing.assert_allclose(p[0], inertia_ratios(srt[::-1]), atol=1e-8)
+
+
+FLIPS = [np.diag(d) for d in ([1.0, 1, 1], [1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]
+
+
+@given(quat, rate, st.sampled_from(range(len(FLIPS))))
+def test_canonical_frame_identity_aligned_template(q_TI, w, k):
+    """Hu 2024 target inertia diag(8, 5, 4): x_T already has the largest moment, z_T the
+    smallest.  With G = T (up to a 180-degree flip about a principal axis, which leaves the
+    inertia unchanged) the DPACF frame T' is G itself, so R_T'T is that flip."""
+    inertia = np.diag([8.0, 5.0, 4.0])
+    feats = np.random.default_rng(7).uniform(-2.0, 2.0, (5, 3))
+    R_GT = FLIPS[k]
+    truth = make_truth(q_TI, w, inertia, feats)
+    R = hu.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
+    np.testing.assert_array_equal(R, R_GT)
+    # principal_frame of the inertia seen in G reproduces it (R_GT' = I)
+    R_GTc = principal_frame(R_GT @ inertia @ R_GT.T)
+    np.testing.assert_allclose(R_GTc, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R_GTc.T @ R_GT, R, atol=1e-12)
+    x = hu.truth_in_frame(truth, R, hu.layout(5))
+    np.testing.assert_allclose(x[0, 7:10], inertia_ratios([8.0, 5.0, 4.0]), atol=1e-15)
