@@ -22,7 +22,7 @@ def test_attitude_error_matches_scipy_magnitude(q_true, q_hat):
     q_hat = q_hat / np.linalg.norm(q_hat, axis=-1, keepdims=True)
     err = metrics.attitude_error_rad(q_true, q_hat)
     ref = (Rotation.from_quat(q_true) * Rotation.from_quat(q_hat).inv()).magnitude()
-    np.testing.assert_allclose(err, ref, rtol=0, atol=1e-7)  # arctan2 vs arccos near 0
+    np.testing.assert_allclose(err, ref, rtol=0, atol=1e-12)
     assert np.all((err >= 0.0) & (err <= np.pi))
     # q and -q are the same attitude
     np.testing.assert_allclose(metrics.attitude_error_rad(q_true, -q_hat), err, atol=1e-12)
