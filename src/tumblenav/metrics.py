@@ -104,6 +104,13 @@ def nanmean_quiet(a: Array, axis=None) -> Array:
         return np.nanmean(a, axis=axis)
 
 
+def nanmedian_quiet(a: Array, axis=None) -> Array:
+    """``np.nanmedian`` that quietly gives NaN for all-NaN slices."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(a, axis=axis)
+
+
 def rmse_over_runs(errors: Array) -> Array:
     """Hu 2024 eq. 45: (runs, n) error magnitudes -> (n,) RMSE across runs (NaN-aware)."""
     return np.sqrt(nanmean_quiet(np.asarray(errors) ** 2, axis=0))

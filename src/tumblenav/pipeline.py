@@ -159,6 +159,7 @@ def campaign_curves(folder: Path, runs: int) -> tuple[np.ndarray, dict, dict]:
 
     t, errs, cons = runner.collect(CampaignStore(Path(folder)), runs)
     curves = {k: metrics.rmse_over_runs(v) for k, v in errs.items()}
+    cons["median"] = {k: metrics.nanmedian_quiet(v, axis=0) for k, v in errs.items()}
     return t, curves, cons
 
 
@@ -168,8 +169,8 @@ def campaign_figures(folder: Path, scenario: Scenario, estimator: str, runs: int
         return
     for key, y in curves.items():
         figures.plot_rmse(
-            {estimator: (t, y)},
-            f"RMSE {key}",
+            {f"{estimator} RMSE": (t, y), f"{estimator} median": (t, cons["median"][key])},
+            f"{key}",
             folder / f"rmse_{key}.png",
             f"{scenario.name}: Monte Carlo RMSE over {len(cons['runs'])} runs",
             window=scenario.window_s,

@@ -128,10 +128,15 @@ def plot_rmse(
     log: bool = True,
     window: tuple[float, float] | None = None,
 ) -> Path:
-    """Monte Carlo RMSE over runs vs time (Hu 2024 eq. 45) for several cases."""
+    """Monte Carlo RMSE over runs vs time (Hu 2024 eq. 45) for several cases; a label ending
+    in " median" is drawn dashed in the colour of its " RMSE" companion."""
     fig, ax = plt.subplots(figsize=(8, 4))
+    colors: dict[str, str] = {}
     for label, (t, y) in curves.items():
-        ax.plot(t, y, lw=1.0, label=label)
+        base = label.rsplit(" ", 1)[0] if label.endswith((" RMSE", " median")) else label
+        style = "--" if label.endswith(" median") else "-"
+        line = ax.plot(t, y, lw=1.0, ls=style, label=label, color=colors.get(base))
+        colors.setdefault(base, line[0].get_color())
     if log:
         ax.set_yscale("log")
     if window:
@@ -139,8 +144,8 @@ def plot_rmse(
     ax.set_xlabel("time [s]")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    ax.set_title(title)
+    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=9)
     return save(fig, path)
 
 

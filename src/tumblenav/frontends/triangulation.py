@@ -209,15 +209,15 @@ def triangulation_jacobian(p_inC: ArrayLike, focal_px: ArrayLike, baseline_m: Ar
     b = np.asarray(baseline_m, dtype=float)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
     k = y / (f * b)  # = 1/d  (px^-1 times m/m)
-    zero = np.zeros_like(x * k)
-    J = np.stack(
-        np.broadcast_arrays(
-            np.stack(np.broadcast_arrays(y / f - x * k, zero, x * k, zero), -1),
-            np.stack(np.broadcast_arrays(-y * k, zero, y * k, zero), -1),
-            np.stack(np.broadcast_arrays(-z * k, y / f, z * k, zero), -1),
-        ),
-        axis=-2,
-    )
+    shape = np.broadcast_shapes(x.shape, k.shape)
+    J = np.zeros(shape + (3, 4))
+    J[..., 0, 0] = y / f - x * k
+    J[..., 0, 2] = x * k
+    J[..., 1, 0] = -y * k
+    J[..., 1, 2] = y * k
+    J[..., 2, 0] = -z * k
+    J[..., 2, 1] = y / f
+    J[..., 2, 2] = z * k
     return J
 
 
