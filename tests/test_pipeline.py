@@ -165,9 +165,10 @@ def test_campaign_on_a_dask_cluster(tmp_path):
                                   dashboard_address=None) as cluster:
         s = run_campaign(sc, "ekf-dpacf", 2, tmp_path / "dask", scheduler=cluster.scheduler_address)
     assert s["runs"] == 2 and s["runs_failed"] == 0
-    # identical to the same runs done locally (seeds do not depend on where runs execute)
+    # the same runs done locally (seeds do not depend on where runs execute); rel 1e-6 and not
+    # exact because a different batch size changes BLAS summation order (measured 2e-9)
     local = run_campaign(sc, "ekf-dpacf", 2, tmp_path / "local", workers=1)
-    assert local["rmse"] == pytest.approx(s["rmse"], rel=1e-9)
+    assert local["rmse"] == pytest.approx(s["rmse"], rel=1e-6)
 
 
 def test_unreachable_scheduler_is_bad_input(tmp_path, capsys):

@@ -425,8 +425,10 @@ def run_filter(
                 x, P, nis_k, dof_k, rej = _update_sequential(
                     x, P, fe, k, lay, use_att, att_inflation, active
                 )
-            if k % CONSTRAIN_EVERY == 0 or start.any():
-                x, P = constrain_inertia(x, P, lay, active)
+            # per run, so that a run's result never depends on the batch it is in
+            due = active & (start | (k % CONSTRAIN_EVERY == 0))
+            if due.any():
+                x, P = constrain_inertia(x, P, lay, due)
             bad = active & _diverged(x, P, lay)
             if bad.any():  # a run that blew up is stopped (NaN from here on) and counted
                 diverged |= bad
