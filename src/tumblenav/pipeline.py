@@ -187,22 +187,29 @@ def campaign_figures(folder: Path, scenario: Scenario, estimator: str, runs: int
 
 
 def print_summary(summary: dict[str, Any], console: Console) -> None:
-    """summary.json as a table."""
-    table = Table(
-        title=f"{summary.get('scenario')} / {summary.get('estimator')}: "
-        f"{summary.get('runs')} run(s), window {summary.get('window_s')} s"
+    """summary.json as a table: RMSE over the window, and for campaigns the median run."""
+    w = summary.get("window_s")
+    console.print(
+        f"[bold]{summary.get('scenario')} / {summary.get('estimator')}[/], "
+        f"{summary.get('runs')} run(s), steady-state window {w[0]:g}-{w[1]:g} s"
     )
+    table = Table()
     table.add_column("quantity")
     table.add_column("RMSE", justify="right")
+    per_run = summary.get("per_run") or {}
+    if per_run:
+        table.add_column("median run", justify="right")
     for k, v in summary.get("rmse", {}).items():
-        table.add_row(k, "-" if v is None else f"{v:.4g}")
+        row = [k, "-" if v is None else f"{v:.4g}"]
+        if per_run:
+            row.append(f"{per_run[k]['median']:.4g}" if k in per_run else "-")
+        table.add_row(*row)
     for name in ("nees", "nis"):
         c = summary.get(name)
         if c and c.get("mean") is not None:
             lo, hi = c["bounds95"]
-            table.add_row(
-                f"{name.upper()}/dof (dof {c['dof']})", f"{c['mean']:.3g} in [{lo:.3g}, {hi:.3g}]?"
-            )
+            row = [f"{name.upper()}/dof (95%: {lo:.3g}-{hi:.3g})", f"{c['mean']:.3g}"]
+            table.add_row(*(row + ([""] if per_run else [])))
     console.print(table)
 
 
