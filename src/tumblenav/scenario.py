@@ -75,7 +75,7 @@ class ChaserConfig(_Model):
         "(Kabir 2025 Sec. 2.1), then L coincides with I and translation is force-free",
     )
     attitude: Literal["target-pointing", "lvlh"] = Field(
-        "target-pointing",
+        "lvlh",
         description="'lvlh': body frame = L (LVLH-pointing); 'target-pointing': the rig's "
         "boresight tracks the target's mass centre (its z axis kept near zenith)",
     )
