@@ -122,6 +122,12 @@ def run_estimate(
             output / "errors.png",
             f"{scenario.name} / {estimator}: errors and +-3 sigma",
         )
+    if not np.isfinite(hist.x).any():
+        summary["note"] = (
+            f"{estimator} never started: its start condition was not met in this run "
+            + str(hist.info.get("start_condition", "(see the estimator's documentation)"))
+        )
+        con.print(f"[yellow]note:[/] {summary['note']}")
     io.write_json(summary, output / "summary.json")
     return summary
 

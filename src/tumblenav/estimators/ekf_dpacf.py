@@ -823,6 +823,12 @@ class HuEKF:
                 "known": fe.known[0],
                 "start_time_s": float(res["t"][res["k0"][0]]) if res["k0"][0] >= 0 else None,
                 "dpacf_q_TI": fe.q_TI[0],
+                "start_condition": (
+                    "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
+                    f"{parse_tuning(scenario.estimator.tuning).max_dpacf_sigma_rad} rad; "
+                    "epochs with >= 3 triangulated features: "
+                    f"{int((fe.usable[0].sum(axis=1) >= 3).sum())} of {len(fe.t)})"
+                ),
             },
         )
 

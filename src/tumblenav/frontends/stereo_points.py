@@ -169,10 +169,10 @@ def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDA
     """Per run, the visible triplet with the largest smallest-altitude; (B,3) indices."""
     B, N, _ = p.shape
     trip = np.array(list(combinations(range(N), 3))) if N >= 3 else np.zeros((0, 3), int)
-    if len(trip) > 4000:  # many features: search among the 30 farthest from the centroid
+    if len(trip) > 4000:  # many features: search among the 20 farthest from the centroid
         c = np.nanmean(p, axis=1, keepdims=True)
         dist = np.where(usable, np.linalg.norm(p - c, axis=-1), -1.0)
-        far = np.argsort(-dist, axis=1)[:, :30]
+        far = np.argsort(-dist, axis=1)[:, :20]
         sub = np.take_along_axis(p, far[..., None], axis=1)
         subu = np.take_along_axis(usable, far, axis=1)
         idx, ok = _best_triplet_batch(sub, subu)
