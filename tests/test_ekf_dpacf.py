@@ -465,3 +465,20 @@ def test_sequential_update_equals_batch_update():
     assert np.allclose(xs, xb, rtol=0, atol=1e-10)
     assert np.allclose(Ps, Pb, rtol=1e-8, atol=1e-14)
     assert np.isclose(ns[0], nb[0], rtol=1e-8) and ds[0] == db[0]
+
+
+def test_frame_measurement_and_its_jacobian():
+    """R_TG of the features against their G template (Kabsch) and dphi/df_i = M^-1 [b_i x]."""
+    rng = np.random.default_rng(7)
+    f = rng.normal(size=(1, 6, 3))
+    R = rot.exp_map(rng.normal(size=3))
+    g = ((f[0] - f[0].mean(0)) @ R + rng.normal(size=3))[None]  # f - c = R g', exactly
+    use = np.ones((1, 6), dtype=bool)
+    R_TG, J = hu.frame_measurement(f, g, use, jac=True)
+    assert np.allclose(R_TG[0], R, atol=1e-12)
+
+    def h(fv):
+        return rot.matrix_to_quat(hu.frame_measurement(fv.reshape(1, 6, 3), g, use)[0][0])
+
+    num = numerical_jacobian(h, f.ravel(), boxminus=lambda a, b: rot.boxminus(a, b))
+    assert np.allclose(num, np.concatenate(list(J[0]), axis=1), atol=1e-7)

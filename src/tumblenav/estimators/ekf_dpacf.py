@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -84,6 +84,12 @@ class HuTuning(BaseModel):
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
     max_dpacf_sigma_rad: float = Field(0.05, gt=0, description="start once DPACF is this good")
+    dpacf_measurement: Literal["attitude", "frame"] = Field(
+        "attitude",
+        description="'attitude': Hu 2024 eq. 31 (q_TI = q_TG q_GI, every epoch); 'frame': the "
+        "DPACF rotation R_TG against the filter's features (beyond the paper)",
+    )
+    frame_meas_every: int = Field(50, ge=1, description="epochs between frame measurements")
     flip_epochs: int = Field(
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
     )
@@ -366,6 +372,10 @@ def run_filter(
     P = np.tile(np.eye(d), (B, 1, 1))
     active = np.zeros(B, dtype=bool)
     gate = stats.chi2.ppf(tun.gate_probability, 3) if tun.gate_probability else np.inf
+    if np.isfinite(gate) and tun.dpacf_measurement == "frame":
+        raise InputError(
+            "estimator.tuning: gate_probability works with dpacf_measurement 'attitude' only"
+        )
     dt_nom = float(np.median(np.diff(fe.t)))
     att_inflation = max(1.0, tun.attitude_corr_time_s / (dt_nom * tun.attitude_meas_every))
     t = fe.t
@@ -412,8 +422,11 @@ def run_filter(
             P[start] = init.P0[start]
             active |= start
         if active.any():
-            use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
-            if use_att:
+            if tun.dpacf_measurement == "frame":
+                use_att = "frame" if use_dpacf and k % tun.frame_meas_every == 0 else False
+            else:
+                use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
+            if use_dpacf and k % tun.attitude_meas_every == 0:
                 x, P, flip_votes = _follow_dpacf_branch(
                     x, P, fe.q_TI[:, k], active, lay, flip_votes, tun.flip_epochs, flips
                 )
@@ -658,6 +671,36 @@ def _inv3(S: Array) -> tuple[Array, Array]:
     return adj / det[..., None, None], det
 
 
+def frame_measurement(f: Array, g: Array, use: NDArray[np.bool_], jac: bool = False):
+    """The rotation ``R_TG`` between the filter's features in T and their template in G.
+
+    ``f`` (B,N,3) features in T, ``g`` (B,N,3) template in G, ``use`` (B,N). Least-squares
+    rigid alignment (Kabsch) of the centred sets. With ``jac``, also ``dphi/df_i`` (B,N,3,3)
+    for the rotation error ``R_TG = Exp(dphi) R_TG_hat`` (in T): with ``b_i`` the centred
+    template rotated into T and ``M = sum (|b_i|^2 I - b_i b_i^T)``,
+    ``dphi/df_i = M^-1 [b_i x]`` (centring cancels because ``sum b_i = 0``).
+    """
+    w = use.astype(float)
+    n = np.maximum(w.sum(axis=1), 1.0)[:, None]
+    fc = np.nan_to_num(f) - (w[..., None] * np.nan_to_num(f)).sum(1)[:, None] / n[..., None]
+    gc = np.nan_to_num(g) - (w[..., None] * np.nan_to_num(g)).sum(1)[:, None] / n[..., None]
+    fc, gc = fc * w[..., None], gc * w[..., None]
+    Hm = np.swapaxes(gc, -1, -2) @ fc  # sum g f^T
+    U, _, Vt = np.linalg.svd(Hm)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.zeros_like(Hm)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(d == 0, 1.0, d)
+    R_TG = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    if not jac:
+        return R_TG, None
+    b = gc @ np.swapaxes(R_TG, -1, -2)
+    M = np.sum(w * np.sum(b * b, -1), 1)[:, None, None] * np.eye(3) - np.swapaxes(b, -1, -2) @ b
+    Minv, _ = _inv3(M)
+    J = (Minv[:, None] @ rot.skew(b)) * w[..., None, None]
+    return R_TG, J
+
+
 def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active):
     """The update of :func:`_update` processed block by block (DPACF attitude, then each
     feature), all linearised at the prior: for independent measurement blocks this equals
@@ -690,7 +733,24 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active):
         P = P - np.swapaxes(HP, -1, -2) @ Kt
         nis += np.sum(nu * (Sinv @ nu[..., None])[..., 0], axis=1)
 
-    if use_att:
+    if use_att == "frame":  # DPACF frame R_TG against the filter's own features
+        use = fe.known_at[:, k] & active[:, None]
+        ok0 = np.all(np.isfinite(fe.R_GT[:, k]), axis=(-1, -2)) & (use.sum(1) >= 3) & active
+        R_hat, J = frame_measurement(f, fe.template_G, use, jac=True)
+        R_meas = np.swapaxes(np.where(ok0[:, None, None], fe.R_GT[:, k], np.eye(3)), -1, -2)
+        nu0 = rot.log_map(R_meas @ np.swapaxes(R_hat, -1, -2))
+        HP = np.zeros((B, 3, lay.dim))
+        Hdx = np.zeros((B, 3))
+        for i in range(N):
+            fi = slice(sf0 + 3 * i, sf0 + 3 * i + 3)
+            HP += J[:, i] @ P[:, fi, :]
+        S = np.zeros((B, 3, 3))
+        for i in range(N):
+            fi = slice(sf0 + 3 * i, sf0 + 3 * i + 3)
+            S += HP[:, :, fi] @ np.swapaxes(J[:, i], -1, -2)
+        R0 = np.nan_to_num(fe.cov_frame[:, k]) * att_inflation
+        absorb(HP, S + R0, nu0 - Hdx, ok0)
+    elif use_att:
         ok0 = np.all(np.isfinite(fe.q_TI[:, k]), axis=-1) & active
         qm = np.where(ok0[:, None], fe.q_TI[:, k], q_hat)
         R0 = np.nan_to_num(fe.cov_TI[:, k] + (att_inflation - 1.0) * fe.cov_frame[:, k])

@@ -62,6 +62,7 @@ class PointsFrontEnd:
     omega_G: Array  # (B,n,3) rad/s, rate of G wrt I in G
     template_G: Array  # (B,N,3) m, feature coordinates in G
     known: NDArray[np.bool_]  # (B,N)
+    known_at: NDArray[np.bool_]  # (B,n,N) catalogued in the template by epoch k
     R_GT: Array  # (B,n,3,3) DPACF principal frame (NaN until identified)
     moments: Array  # (B,n,3) principal moments / lambda_1
     q_TI: Array  # (B,n,4) DPACF attitude measurement
@@ -196,8 +197,9 @@ def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDA
 
 def photogrammetric_frames(
     p_C: Array, cov_C: Array, usable: NDArray[np.bool_]
-) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
-    """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3) and its mask."""
+) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_]]:
+    """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3), its final mask and
+    the mask of features catalogued by each epoch (B,n,N)."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
     known = np.zeros((B, N), dtype=bool)
@@ -241,7 +243,7 @@ def photogrammetric_frames(
     ok = ok.reshape(B, n)
     R_GC = np.where(ok[..., None, None], Rgc.reshape(B, n, 3, 3), np.nan)
     cov_G = np.where(ok[..., None, None], cg.reshape(B, n, 3, 3), np.nan)
-    return R_GC, cov_G, template, known
+    return R_GC, cov_G, template, known, known_at
 
 
 def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, Array]:
@@ -395,7 +397,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_LC = np.swapaxes(R_CL, -1, -2)
     p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
     cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
-    R_GC, cov_G, template, known = photogrammetric_frames(p_C, cov_C, usable)
+    R_GC, cov_G, template, known, known_at = photogrammetric_frames(p_C, cov_C, usable)
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     omega_G, var_w = rates_from_G(R_GI, cov_G, dt, s.rate_half_window)
@@ -412,6 +414,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         omega_G=omega_G,
         template_G=template,
         known=known,
+        known_at=known_at,
         R_GT=R_GT,
         moments=moments,
         q_TI=q_TI,
