@@ -90,6 +90,9 @@ class HuTuning(BaseModel):
         "DPACF rotation R_TG against the filter's features (beyond the paper)",
     )
     frame_meas_every: int = Field(50, ge=1, description="epochs between frame measurements")
+    first_estimates_jacobian: bool = Field(
+        True, description="linearise dy_i/dtheta at each feature's first estimate (FEJ)"
+    )
     flip_epochs: int = Field(
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
     )
@@ -388,6 +391,7 @@ def run_filter(
     rejected = np.zeros(B, dtype=np.int64)
     diverged = np.zeros(B, dtype=bool)
     flip_votes = np.zeros(B, dtype=np.int64)
+    f_first = np.full((B, N, 3), np.nan)  # first estimates of the features (FEJ option)
     flips = np.zeros(B, dtype=np.int64)
     xt = None
     if truths is not None:
@@ -435,8 +439,22 @@ def run_filter(
                     x, P, fe, k, lay, use_att, gate, att_inflation, active
                 )
             else:
+                if tun.first_estimates_jacobian:
+                    fnow = x[:, lay.nom("features")].reshape(B, N, 3)
+                    fresh = (start[:, None] & fe.known_at[:, k]) | (
+                        active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0])
+                    )
+                    f_first = np.where(fresh[..., None], fnow, f_first)
                 x, P, nis_k, dof_k, rej = _update_sequential(
-                    x, P, fe, k, lay, use_att, att_inflation, active
+                    x,
+                    P,
+                    fe,
+                    k,
+                    lay,
+                    use_att,
+                    att_inflation,
+                    active,
+                    f_lin=f_first if tun.first_estimates_jacobian else None,
                 )
             # per run, so that a run's result never depends on the batch it is in
             due = active & (start | (k % CONSTRAIN_EVERY == 0))
@@ -701,7 +719,7 @@ def frame_measurement(f: Array, g: Array, use: NDArray[np.bool_], jac: bool = Fa
     return R_TG, J
 
 
-def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active):
+def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active, f_lin=None):
     """The update of :func:`_update` processed block by block (DPACF attitude, then each
     feature), all linearised at the prior: for independent measurement blocks this equals
     the batch update exactly, and it needs only 3x3 inverses."""
@@ -712,7 +730,8 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active):
     f = x[:, lay.nom("features")].reshape(B, N, 3)
     R_LT = fe.R_LI[:, k] @ np.swapaxes(rot.quat_to_matrix(q_hat), -1, -2)
     R_TL = np.swapaxes(R_LT, -1, -2)
-    Hth = R_LT[:, None] @ rot.skew(f)  # dy_i/dtheta = R_LT [f_i x]
+    # dy_i/dtheta = R_LT [f_i x]; optionally at the features' first estimates (FEJ)
+    Hth = R_LT[:, None] @ rot.skew(f if f_lin is None else np.where(np.isfinite(f_lin), f_lin, f))
     HthT = np.swapaxes(Hth, -1, -2)
     y_hat = x[:, None, lay.nom("position")] + f @ R_TL
     u = fe.usable[:, k] & active[:, None]
