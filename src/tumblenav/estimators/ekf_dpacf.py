@@ -90,8 +90,11 @@ class HuTuning(BaseModel):
         "DPACF rotation R_TG against the filter's features (beyond the paper)",
     )
     frame_meas_every: int = Field(50, ge=1, description="epochs between frame measurements")
-    first_estimates_jacobian: bool = Field(
-        True, description="linearise dy_i/dtheta at each feature's first estimate (FEJ)"
+    first_estimates_jacobian: bool | None = Field(
+        None,
+        description="linearise dy_i/dtheta at each feature's first estimate (FEJ); default: "
+        "on for ekf-dpacf, off for ekf-baseline (which starts far from any principal frame, "
+        "where frozen first estimates make it diverge)",
     )
     flip_epochs: int = Field(
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
@@ -355,6 +358,8 @@ def run_filter(
     ``truths`` (the simulated truth of each run) the error histories and NEES against the
     truth expressed in this filter's principal frame (:func:`canonical_frame`)."""
     tun = parse_tuning(scenario.estimator.tuning)
+    if tun.first_estimates_jacobian is None:
+        tun = tun.model_copy(update={"first_estimates_jacobian": use_dpacf})
     s_t2 = (
         tun.sigma_t2_m2_s4
         if tun.sigma_t2_m2_s4 is not None
