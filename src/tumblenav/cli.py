@@ -102,7 +102,9 @@ def montecarlo(
             "--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"
         ),
     ] = None,
-    runs: Annotated[int, typer.Option(min=1, help="number of runs")] = 20,
+    runs: Annotated[
+        int | None, typer.Option(min=1, help="number of runs (default: the scenario's)")
+    ] = None,
     workers: Annotated[
         int | None, typer.Option(min=1, help="processes (default: all cores)")
     ] = None,

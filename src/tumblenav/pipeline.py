@@ -134,8 +134,8 @@ def run_estimate(
 
 def run_montecarlo(
     scenario_ref: str,
-    estimator: str,
-    runs: int,
+    estimator: str | None,
+    runs: int | None,
     output: Path,
     workers: int | None = None,
     scheduler: str | None = None,
@@ -145,6 +145,7 @@ def run_montecarlo(
     """A resumable campaign plus its figures (RMSE vs time, NEES vs time)."""
     scenario = scenario or load_scenario(scenario_ref)
     estimator = estimator or scenario.estimator.name
+    runs = runs or scenario.montecarlo.runs
     est_base.get(estimator)
     summary = runner.run_campaign(
         scenario,
