@@ -28,7 +28,8 @@ def _umask() -> int:
     return mask
 
 
-def _atomic(path: Path, write: Callable[[Path], None]) -> Path:
+def atomic_write(path: Path, write: Callable[[Path], None]) -> Path:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it over ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -56,7 +57,7 @@ def write_netcdf(ds: xr.Dataset, path: str | Path) -> Path:
     def _write(tmp: Path) -> None:
         ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
 
-    return _atomic(Path(path), _write)
+    return atomic_write(Path(path), _write)
 
 
 def read_netcdf(path: str | Path, required: tuple[str, ...] = ()) -> xr.Dataset:
@@ -98,7 +99,7 @@ def write_json(obj: Any, path: str | Path) -> Path:
     def _write(tmp: Path) -> None:
         tmp.write_text(text, encoding="utf-8")
 
-    return _atomic(Path(path), _write)
+    return atomic_write(Path(path), _write)
 
 
 def read_json(path: str | Path) -> Any:

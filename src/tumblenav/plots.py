@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tumblenav.io import _atomic  # noqa: E402
+from tumblenav.io import atomic_write  # noqa: E402
 
 
 def save(fig: plt.Figure, path: str | Path) -> Path:
@@ -20,7 +20,7 @@ def save(fig: plt.Figure, path: str | Path) -> Path:
     def _write(tmp: Path) -> None:
         fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
 
-    out = _atomic(path, _write)
+    out = atomic_write(path, _write)
     plt.close(fig)
     return out
 

@@ -106,7 +106,7 @@ def run_campaign(
             "runs_requested": runs,
         }
     )
-    io._atomic(
+    io.atomic_write(
         store.root / "scenario.yaml",
         lambda tmp: tmp.write_text(scenario_to_yaml(scenario), encoding="utf-8"),
     )

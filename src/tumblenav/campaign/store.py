@@ -82,7 +82,7 @@ class CampaignStore:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **arrays)
 
-        out = io._atomic(path, _write)
+        out = io.atomic_write(path, _write)
         self.failed_path(k).unlink(missing_ok=True)
         return out
 
