@@ -33,6 +33,10 @@ err = Console(stderr=True)
 
 ScenarioArg = Annotated[str, typer.Argument(help="built-in scenario name or path to a YAML file")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="output folder")]
+EstimatorOpt = Annotated[
+    str | None,
+    typer.Option("--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"),
+]
 
 
 @scenarios_app.command("list")
@@ -73,12 +77,7 @@ def simulate(
 @app.command()
 def estimate(
     scenario: ScenarioArg,
-    estimator: Annotated[
-        str | None,
-        typer.Option(
-            "--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"
-        ),
-    ] = None,
+    estimator: EstimatorOpt = None,
     output: OutOpt = Path("out/estimate"),
     measurements: Annotated[
         Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
@@ -96,12 +95,7 @@ def estimate(
 @app.command()
 def montecarlo(
     scenario: ScenarioArg,
-    estimator: Annotated[
-        str | None,
-        typer.Option(
-            "--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"
-        ),
-    ] = None,
+    estimator: EstimatorOpt = None,
     runs: Annotated[
         int | None, typer.Option(min=1, help="number of runs (default: the scenario's)")
     ] = None,
