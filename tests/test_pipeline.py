@@ -176,3 +176,27 @@ def test_unreachable_scheduler_is_bad_input(tmp_path, capsys):
     code, _, err = cli(["montecarlo", sc, "-e", "ekf-dpacf", "--runs", 1,
                         "--scheduler", "tcp://127.0.0.1:9", "-o", tmp_path / "x"], capsys)
     assert code == 2 and "Dask scheduler" in err
+
+
+def test_reproduce_hu2024_writes_cases_and_figures(tmp_path, capsys):
+    out = tmp_path / "rep"
+    code, _, err = cli(["reproduce", "hu2024", "--runs", 2, "--workers", 1, "-o", out], capsys)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["paper"] == "hu2024"
+    cases = summary["cases"]
+    assert {(c["noise_rad"], c["estimator"]) for c in cases} == {
+        (n, e) for n in (1e-6, 5e-6, 2e-5, 5e-5) for e in ("ekf-dpacf", "ekf-baseline")
+    }
+    for c in cases:
+        assert c["runs"] + c["runs_failed"] == 2
+        assert "rmse" in c and "nees" in c and "paper_values" in c
+    for name in ("fig5_dpacf_attitude", "fig6_attitude", "fig10_position"):
+        assert (out / f"{name}.png").exists()
+
+
+def test_reproduce_unknown_or_unimplemented_paper(tmp_path, capsys):
+    code, _, err = cli(["reproduce", "nope", "-o", tmp_path], capsys)
+    assert code == 2 and "unknown paper" in err
+    code, _, err = cli(["reproduce", "yu2019", "-o", tmp_path], capsys)
+    assert code == 2 and "not implemented yet" in err
