@@ -25,7 +25,11 @@ def reproduce(
         from tumblenav.papers import hu2024
 
         return hu2024.reproduce(Path(output), runs=runs, workers=workers, console=console)
+    if paper == "yu2019":
+        from tumblenav.papers import yu2019
+
+        return yu2019.reproduce(Path(output), runs=runs, workers=workers, console=console)
     raise InputError(
         f"reproduce {paper} is not implemented yet (its estimator comes with its "
-        "own issue); available: hu2024"
+        "own issue); available: hu2024, yu2019 (Tables 1-4 only)"
     )

@@ -1,0 +1,194 @@
+"""Planes in depth point clouds (Yu 2019 Sec. 2.1-2.2): RANSAC extraction, the point-cloud
+distribution matrix and rectangle recognition.
+
+- :func:`ransac_iterations` is Yu 2019 eq. 2; :func:`ransac_plane` the RANSAC of Sec. 2.1 with
+  the point-to-plane distance of eq. 1, vectorised over hypotheses (all hypotheses of a round
+  are scored in one matrix product), with an adaptive stop when eq. 2 is met for the inlier
+  ratio found so far, and a least-squares refit on the consensus set.
+- :func:`distribution_matrix` is eq. 3-5 (centroid, matrix J, eigen-decomposition).
+- :func:`rectangle_sides` inverts eq. 17: ``E(I) = side^2 / 12 + sigma^2``.
+
+Written with numpy rather than taken from Open3D (``segment_plane``), which is a 600 MB
+dependency; Open3D is the reference in ``benchmarks/plane_extraction.py`` when installed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def ransac_iterations(outlier_fraction: float, probability: float = 0.99, sample: int = 3) -> int:
+    """Yu 2019 eq. 2: ``K = log(1 - Phi) / log(1 - (1 - tau)^3)`` (rounded up).
+
+    ``tau`` is the proportion of outliers, ``Phi`` the probability that at least one sample of
+    three points is outlier-free.
+    """
+    if not 0.0 <= outlier_fraction < 1.0:
+        raise ValueError(f"outlier_fraction must be in [0, 1), got {outlier_fraction}")
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"probability must be in (0, 1), got {probability}")
+    good = (1.0 - outlier_fraction) ** sample
+    if good >= 1.0:
+        return 1
+    return max(1, math.ceil(math.log(1.0 - probability) / math.log(1.0 - good)))
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """A plane ``n . x + d = 0`` (unit normal) and its consensus set."""
+
+    normal: Array  # (3,)
+    d: float
+    inliers: NDArray[np.bool_]  # (N,)
+    iterations: int
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def _clean(points: Array) -> Array:
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {p.shape}")
+    return p
+
+
+def ransac_plane(
+    points: Array,
+    threshold: float,
+    rng: np.random.Generator,
+    max_iterations: int = 300,
+    probability: float = 0.99,
+    adaptive: bool = True,
+    batch: int = 16,
+) -> PlaneFit | None:
+    """The plane with the largest consensus (Yu 2019 Sec. 2.1, steps 1-5), or None.
+
+    Non-finite points never vote and are never inliers. With ``adaptive`` the search stops as
+    soon as the number of hypotheses drawn reaches eq. 2's ``K`` for the best inlier ratio found
+    so far (never more than ``max_iterations``); hypotheses are drawn and scored ``batch`` at a
+    time. The returned plane is the least-squares plane of the consensus set, whose inliers are
+    then recounted.
+    """
+    p = _clean(points)
+    finite = np.all(np.isfinite(p), axis=1)
+    idx = np.flatnonzero(finite)
+    if len(idx) < 3:
+        return None
+    q = p[idx]
+    n = len(q)
+    best_count, best = -1, None
+    drawn = 0
+    need = max_iterations
+    while drawn < min(need, max_iterations):
+        m = min(batch, min(need, max_iterations) - drawn)
+        tri = rng.integers(0, n, size=(m, 3))  # repeated indices give a zero normal: dropped
+        a, b, c = q[tri[:, 0]], q[tri[:, 1]], q[tri[:, 2]]
+        nrm = np.cross(b - a, c - a)
+        ln = np.linalg.norm(nrm, axis=1)
+        ok = ln > 1e-12 * np.maximum(1.0, np.abs(q).max()) ** 2
+        nrm = nrm[ok] / ln[ok, None]
+        dd = -np.sum(nrm * a[ok], axis=1)
+        drawn += m
+        if len(nrm) == 0:
+            continue
+        # Yu 2019 eq. 1 for every point and hypothesis at once
+        counts = np.sum(np.abs(q @ nrm.T + dd) < threshold, axis=0)
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best_count, best = int(counts[k]), (nrm[k], dd[k])
+            if adaptive:
+                need = ransac_iterations(1.0 - best_count / n, probability)
+    if best is None or best_count < 3:
+        return None
+    normal, d = best
+    inl = np.abs(q @ normal + d) < threshold
+    # refit on the consensus set (least squares: normal = smallest principal direction)
+    c0 = q[inl].mean(axis=0)
+    _, _, vt = np.linalg.svd(q[inl] - c0, full_matrices=False)
+    normal = vt[-1]
+    d = -float(normal @ c0)
+    inl = np.abs(q @ normal + d) < threshold
+    full = np.zeros(len(p), dtype=bool)
+    full[idx[inl]] = True
+    return PlaneFit(normal=normal, d=d, inliers=full, iterations=drawn)
+
+
+def extract_planes(
+    points: Array,
+    threshold: float,
+    rng: np.random.Generator,
+    min_points: int = 50,
+    max_planes: int = 5,
+    **kwargs,
+) -> list[PlaneFit]:
+    """Several planes: RANSAC, remove the consensus set, repeat while a plane keeps at least
+    ``min_points`` points. Inlier masks refer to the input points."""
+    p = _clean(points)
+    remaining = np.all(np.isfinite(p), axis=1)
+    planes: list[PlaneFit] = []
+    while len(planes) < max_planes and remaining.sum() >= max(3, min_points):
+        sub = np.where(remaining[:, None], p, np.nan)
+        fit = ransac_plane(sub, threshold, rng, **kwargs)
+        if fit is None or fit.n_inliers < min_points:
+            break
+        planes.append(fit)
+        remaining &= ~fit.inliers
+    return planes
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """Yu 2019 eq. 3-5: centroid ``r_m``, distribution matrix ``J``, eigenvalues (ascending)
+    and eigenvectors (columns), with ``J = R diag(lam) R^T``."""
+
+    centroid: Array
+    J: Array
+    eigenvalues: Array
+    R: Array
+
+
+def distribution_matrix(points: Array) -> Distribution:
+    """Centroid (eq. 3), distribution matrix (eq. 4) and its eigen-decomposition (eq. 5)."""
+    p = _clean(points)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) < 3:
+        raise ValueError("a distribution matrix needs at least 3 finite points")
+    rm = p.mean(axis=0)  # eq. 3
+    d = p - rm
+    J = d.T @ d / len(p)  # eq. 4
+    lam, R = np.linalg.eigh(J)  # eq. 5 (ascending eigenvalues)
+    return Distribution(centroid=rm, J=J, eigenvalues=lam, R=R)
+
+
+def rectangle_sides(eigenvalues: Array, sigma: float = 0.0) -> tuple[float, float, float]:
+    """Side lengths (short, long) and the out-of-plane noise estimate from the eigenvalues of a
+    rectangular point cloud, inverting Yu 2019 eq. 17: ``E(I) = side^2/12 + sigma^2``
+    (``E(I_z) = sigma^2``). ``sigma`` is the known per-axis noise; the smallest eigenvalue
+    gives an estimate of it, returned as the third value."""
+    lam = np.sort(np.asarray(eigenvalues, dtype=float))
+    s2 = sigma**2
+    b = math.sqrt(max(12.0 * (lam[1] - s2), 0.0))
+    a = math.sqrt(max(12.0 * (lam[2] - s2), 0.0))
+    return b, a, math.sqrt(max(lam[0], 0.0))
+
+
+def match_rectangle(
+    sides: tuple[float, float], known: dict[str, tuple[float, float]], rel_tol: float = 0.05
+) -> str | None:
+    """Name of the known rectangle whose (short, long) sides match within ``rel_tol``."""
+    b, a = sorted(sides)
+    best, err = None, rel_tol
+    for name, (s1, s2) in known.items():
+        kb, ka = sorted((s1, s2))
+        e = max(abs(b - kb) / kb, abs(a - ka) / ka)
+        if e <= err:
+            best, err = name, e
+    return best
