@@ -93,3 +93,22 @@ def test_yu2019_summary_tables_have_the_contract_keys(tmp_path):
     assert [r["noise_cm"] for r in s["table3"]] == [0.0, 0.01, 0.1, 1.0]
     assert [r["noise_cm"] for r in s["table4"]] == [0.0, 0.01, 0.1, 1.0]
     assert (tmp_path / "summary.json").exists()
+
+
+@given(st.integers(0, 10_000))
+def test_rectangle_frame_and_symmetry_resolution(seed):
+    """Yu 2019 Sec. 2.3: the eigenvectors give the rectangle's frame up to the 4 cases of
+    Fig. 2; the prediction (eq. 21-23) picks the right one (eq. 24-25)."""
+    rng = np.random.default_rng(seed)
+    R_CP = rot.exp_map(rng.normal(size=3) * 2)  # true attitude of the rectangle in C
+    cloud = yu2019.rectangle_cloud(3000, rng) - [0, 0, yu2019.Z_CM]
+    pts = cloud @ R_CP.T + rng.normal(size=3)
+    R_meas = pl.rectangle_frame(pl.distribution_matrix(pts))
+    assert np.isclose(np.linalg.det(R_meas), 1.0)
+    # R_meas equals the truth up to one of the four half turns
+    k_true = int(np.argmax([np.trace(R_CP.T @ R_meas @ S) for S in pl.RECTANGLE_SYMMETRIES]))
+    assert np.allclose(R_meas @ pl.RECTANGLE_SYMMETRIES[k_true], R_CP, atol=0.05)
+    # a prediction 20 deg off resolves the ambiguity
+    R_pred = rot.exp_map(rng.normal(size=3) * 0.2) @ R_CP
+    fixed, _ = pl.resolve_symmetry(R_meas, R_pred)
+    assert np.allclose(fixed, R_CP, atol=0.05)

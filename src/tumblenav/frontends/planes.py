@@ -192,3 +192,40 @@ def match_rectangle(
         if e <= err:
             best, err = name, e
     return best
+
+
+# --- coarse pose and the four-fold symmetry of a rectangle (Yu 2019 Sec. 2.3) --------------
+
+# The four frames a rectangle's eigenvectors can give (Yu 2019 Fig. 2): identity and the
+# half turns about the frame's X, Y and Z axes (eq. 25 with theta = 180 deg).
+RECTANGLE_SYMMETRIES = np.array(
+    [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+)
+
+
+def rectangle_frame(dist: Distribution) -> Array:
+    """``R_CP``: the rectangle's body frame P in the sensor frame C (Yu 2019 Sec. 2.2-2.3).
+
+    Columns: X along the short side (middle eigenvalue), Y along the long side (largest),
+    Z = X x Y along the normal (smallest); a proper rotation. The eigenvectors' signs are
+    arbitrary: the result is one of the four cases of Fig. 2, see :func:`resolve_symmetry`.
+    Yu 2019 eq. 20 turns this matrix into a (scalar-first) quaternion; tumblenav keeps the
+    matrix and converts with :func:`tumblenav.rotations.matrix_to_quat` where needed.
+    """
+    R = dist.R  # ascending eigenvalues: (normal, short, long)
+    x, y = R[:, 1], R[:, 2]
+    return np.column_stack([x, y, np.cross(x, y)])
+
+
+def resolve_symmetry(R_CP: Array, R_CP_predicted: Array) -> tuple[Array, int]:
+    """Yu 2019 eq. 21-25: among the four symmetric frames of a rectangle, the one closest to
+    the prediction (the case whose difference rotation has a scalar part near 1, eq. 23).
+
+    Returns the corrected ``R_CP`` and the index of the half turn applied (0 = none, 1-3 =
+    about X, Y, Z, Yu's cases 2-4).
+    """
+    cands = R_CP @ RECTANGLE_SYMMETRIES  # R_CP q' (eq. 24) for every case
+    # trace(R_pred^T R) = 1 + 2 cos(angle): the largest is the smallest rotation (eq. 23)
+    score = np.einsum("ij,kij->k", R_CP_predicted, cands)
+    k = int(np.argmax(score))
+    return cands[k], k
