@@ -1,0 +1,85 @@
+"""Target mesh and the ray-cast depth sensor (Yu 2019 Sec. 4 set-up)."""
+
+import numpy as np
+import pytest
+
+from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+from tumblenav.frontends import planes as pl
+from tumblenav.sensors.depth import DepthSensor, scan
+from tumblenav.target_model import load_mesh, procedural_satellite
+
+
+def test_procedural_satellite_geometry():
+    m = procedural_satellite()
+    assert m.mesh.bounds[1][0] == pytest.approx(0.5 + 1.8)  # bus half width + panel span
+    names = {r.name for r in m.rectangles}
+    assert {"bus+x", "bus-z", "panel+x_+z", "panel-x_-z"} <= names
+    for r in m.rectangles:
+        assert np.allclose(r.R_MP.T @ r.R_MP, np.eye(3)) and np.isclose(np.linalg.det(r.R_MP), 1)
+        assert r.sides_m[0] <= r.sides_m[1]
+    with pytest.raises(InputError):
+        procedural_satellite(bus_m=(1.0, -1.0, 1.0))
+
+
+def test_mass_properties_of_a_box_bus():
+    m = procedural_satellite(panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0)
+    c, moments = m.mass_properties()
+    assert np.allclose(c, 0.0, atol=1e-3)
+    # a 1 x 1 x 1.2 box of unit density: I = m (a^2 + b^2) / 12, m = 1.2
+    assert moments[0] == pytest.approx(1.2 * 2 / 12, rel=1e-2)
+
+
+def test_scan_of_a_face_gives_its_distance_and_plane():
+    """The bus face -y seen from 5 m along +y: range 4.5 m, a plane with the bus face's sides."""
+    m = procedural_satellite(panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0)
+    sensor = DepthSensor(fov_rad=np.radians(20), points=4000)
+    pts, ok = scan(sensor, m, np.eye(3), np.array([0.0, 5.0, 0.0]), np.random.default_rng(0))
+    assert ok.sum() > 100 and np.all(np.isnan(pts[~ok]))
+    assert np.allclose(pts[ok, 1], 4.5, atol=1e-9)
+    d = pl.distribution_matrix(pts[ok])
+    b, a, _ = pl.rectangle_sides(d.eigenvalues)
+    # a grid of rays over a 1 x 1.2 face: the sampled extent is the face up to one grid step
+    assert b == pytest.approx(1.0, abs=0.06) and a == pytest.approx(1.2, abs=0.06)
+
+
+def test_noise_outliers_and_max_range():
+    m = procedural_satellite()
+    R_SM = rot.exp_map([0.3, -0.2, 0.5])
+    sensor = DepthSensor(np.radians(30), 2500, range_noise_m=0.01)
+    clean, ok = scan(
+        DepthSensor(np.radians(30), 2500), m, R_SM, [0, 8.0, 0], np.random.default_rng(1)
+    )
+    noisy, ok2 = scan(sensor, m, R_SM, [0, 8.0, 0], np.random.default_rng(1))
+    assert np.array_equal(ok, ok2)
+    dr = np.linalg.norm(noisy[ok], axis=1) - np.linalg.norm(clean[ok], axis=1)
+    assert np.std(dr) == pytest.approx(0.01, rel=0.1)
+    out, ok3 = scan(
+        DepthSensor(np.radians(30), 2500, outlier_fraction=0.5),
+        m,
+        R_SM,
+        [0, 8, 0],
+        np.random.default_rng(2),
+    )
+    moved = np.abs(np.linalg.norm(out[ok3 & ok], axis=1) - np.linalg.norm(clean[ok3 & ok], axis=1))
+    assert 0.3 < np.mean(moved > 0.01) < 0.7
+    far, okf = scan(
+        DepthSensor(np.radians(30), 2500, max_range_m=5.0),
+        m,
+        R_SM,
+        [0, 8.0, 0],
+        np.random.default_rng(3),
+    )
+    assert not okf.any()
+
+
+def test_user_mesh_loading(tmp_path):
+    p = tmp_path / "sat.stl"
+    procedural_satellite().mesh.export(p)
+    assert len(load_mesh(p).mesh.faces) > 0
+    with pytest.raises(InputError, match="not found"):
+        load_mesh(tmp_path / "absent.obj")
+    bad = tmp_path / "bad.stl"
+    bad.write_text("not a mesh")
+    with pytest.raises(InputError):
+        load_mesh(bad)
