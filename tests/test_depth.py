@@ -83,3 +83,27 @@ def test_user_mesh_loading(tmp_path):
     bad.write_text("not a mesh")
     with pytest.raises(InputError):
         load_mesh(bad)
+
+
+def test_simulate_yu2019_depth_measurements(tmp_path):
+    """The built-in yu2019 scenario scans the procedural satellite 25 m ahead."""
+    import xarray as xr
+
+    from tumblenav.cli import main
+    from tumblenav.scenario import load_scenario, scenario_to_yaml
+    from tumblenav.simulation import DepthMeasurements, simulate
+
+    s = load_scenario("yu2019").with_updates(duration_s=4.0)
+    truth, meas = simulate(s, 0)
+    assert isinstance(meas, DepthMeasurements)
+    n = meas.observed.sum(axis=1)
+    assert np.all(n > 0.5 * s.sensor.points)
+    rng_m = np.linalg.norm(meas.points[meas.observed], axis=1)
+    assert np.all(np.abs(rng_m - 25.0) < 4.0)  # the satellite is 25 m ahead, a few m across
+    p = tmp_path / "yu.yaml"
+    p.write_text(scenario_to_yaml(s))
+    with pytest.raises(SystemExit) as ei:
+        main(["simulate", str(p), "-o", str(tmp_path / "o"), "--no-plots"])
+    assert ei.value.code == 0
+    ds = xr.open_dataset(tmp_path / "o" / "measurements.nc")
+    assert ds["points"].attrs["units"] == "m" and ds.sizes["time"] == 5

@@ -34,21 +34,11 @@ def run_simulate(
         truth, meas = simulate(scenario, run_seed(base, 0))  # = run 0 of a campaign
     output = Path(output)
     files = [io.write_netcdf(truth.to_dataset(scenario.name), output / "truth.nc")]
-    if meas is not None:
-        files.append(io.write_netcdf(meas.to_dataset(scenario.name), output / "measurements.nc"))
-    else:
-        con.print(
-            f"note: {scenario.sensor.kind} sensor measurements are not simulated yet; "
-            "only the truth was written"
-        )
+    files.append(io.write_netcdf(meas.to_dataset(scenario.name), output / "measurements.nc"))
     if plots:
         files.append(figures.plot_truth(truth, output / "truth.png", f"{scenario.name}: truth"))
-        if meas is not None:
-            files.append(
-                figures.plot_measurements(
-                    meas, output / "measurements.png", f"{scenario.name}: measurements"
-                )
-            )
+        plot = figures.plot_measurements if scenario.sensor.kind == "stereo" else figures.plot_depth
+        files.append(plot(meas, output / "measurements.png", f"{scenario.name}: measurements"))
     return files
 
 

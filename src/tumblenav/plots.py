@@ -165,3 +165,24 @@ def plot_consistency(
     ax.legend(fontsize=8)
     ax.set_title(title)
     return save(fig, path)
+
+
+def plot_depth(meas, path: str | Path, title: str = "") -> Path:
+    """First point cloud seen from the sensor (x-z, coloured by range) and returns per scan."""
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5), gridspec_kw={"width_ratios": [1, 1.3]})
+    k = int(np.argmax(meas.observed.any(axis=1))) if meas.observed.any() else 0
+    p = meas.points[k][meas.observed[k]]
+    if len(p):
+        sc = ax0.scatter(p[:, 0], p[:, 2], c=p[:, 1], s=2, cmap="viridis")
+        fig.colorbar(sc, ax=ax0, label="range along boresight y [m]")
+    ax0.set_aspect("equal")
+    ax0.set_xlabel("x_S [m]")
+    ax0.set_ylabel("z_S [m]")
+    ax0.set_title(f"point cloud at t = {meas.t[k]:g} s")
+    fig.subplots_adjust(wspace=0.5)
+    ax1.plot(meas.t, meas.observed.sum(axis=1), lw=1)
+    ax1.set_xlabel("time [s]")
+    ax1.set_ylabel("returns per scan")
+    ax1.grid(alpha=0.3)
+    fig.suptitle(title or "depth measurements")
+    return save(fig, path)

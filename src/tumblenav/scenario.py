@@ -121,6 +121,34 @@ class RandomFeatures(_Model):
         return self
 
 
+class ProceduralModelConfig(_Model):
+    """Procedural satellite (metres): box bus, two solar panels along x, docking ring on +z,
+    nozzle on -z (``tumblenav.target_model.procedural_satellite``)."""
+
+    kind: Literal["procedural"] = "procedural"
+    bus_m: Vec3 = [1.0, 1.0, 1.2]
+    panel_m: Annotated[list[float], Field(min_length=2, max_length=2)] = [1.8, 0.8]
+    panel_thickness_m: float = Field(0.03, gt=0)
+    ring_radius_m: float = Field(0.3, ge=0)
+    ring_height_m: float = Field(0.08, ge=0)
+    nozzle_radius_m: float = Field(0.15, ge=0)
+    nozzle_height_m: float = Field(0.25, ge=0)
+
+    @field_validator("bus_m", "panel_m")
+    @classmethod
+    def _positive(cls, v: list[float]) -> list[float]:
+        if min(v) <= 0:
+            raise ValueError("dimensions must be positive")
+        return v
+
+
+class MeshFileConfig(_Model):
+    """A user's mesh (OBJ/STL/glTF via trimesh), metres, in the nominal model frame."""
+
+    kind: Literal["file"] = "file"
+    path: str
+
+
 class TargetConfig(_Model):
     inertia_kg_m2: list[float] | list[Vec3] = Field(
         description="principal moments [Ix, Iy, Iz] (kg m^2) of frame T, or a full 3x3 tensor"
@@ -135,6 +163,11 @@ class TargetConfig(_Model):
     )
     features_T_m: list[Vec3] | RandomFeatures | None = Field(
         None, description="feature points in T (m): an explicit list or a random draw"
+    )
+    model: Annotated[ProceduralModelConfig | MeshFileConfig, Field(discriminator="kind")] = Field(
+        ProceduralModelConfig(),
+        description="geometry seen by a depth sensor; its nominal frame is parallel to T, "
+        "with the mass centre at mass_centre_offset_T_m from the model origin",
     )
     feature_normals_T: list[Vec3] | None = Field(
         None,
@@ -290,6 +323,11 @@ class DepthSensorConfig(_Model):
     range_noise_m: float = Field(0.01, ge=0)
     outlier_fraction: float = Field(0.0, ge=0, le=1)
     max_range_m: float = Field(100.0, gt=0)
+    on_target: bool = Field(
+        True,
+        description="spread the rays over the target so that about `points` hit it "
+        "(Yu 2019 draws its points on the target surface); false: a fixed grid over the FOV",
+    )
 
 
 class OcclusionWindow(_Model):
@@ -418,12 +456,15 @@ def builtin_text(name: str) -> str:
     return (resources.files(BUILTIN_PACKAGE) / f"{name}.yaml").read_text(encoding="utf-8")
 
 
+_UNION_TAGS = ("stereo", "depth", "procedural", "file", "list[list[float]]", "RandomFeatures")
+
+
 def _format_loc(loc: tuple[Any, ...]) -> str:
     out = ""
     for part in loc:
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in ("stereo", "depth", "list[list[float]]", "RandomFeatures") or "[" in str(part):
+        elif part in _UNION_TAGS or "[" in str(part):
             continue  # union branch tags from pydantic, not user keys
         else:
             out += ("." if out else "") + str(part)

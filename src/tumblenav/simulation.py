@@ -405,15 +405,123 @@ def simulate_stereo(
     )
 
 
+@dataclass(frozen=True)
+class DepthMeasurements:
+    """Ray-cast point clouds in the sensor frame S (= the rig frame C of the chaser's pointing).
+
+    points : (n, R, 3) m -- [time, ray, xyz], NaN where a ray returned nothing.
+    observed : (n, R) bool.  q_CL, q_LI : (n, 4) -- sensor and LVLH attitudes (known).
+    """
+
+    t: Array
+    points: Array
+    observed: NDArray[np.bool_]
+    q_CL: Array
+    q_LI: Array
+    fov_rad: float
+    range_noise_m: float
+
+    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
+        return xr.Dataset(
+            {
+                "points": (
+                    ("time", "ray", "xyz"),
+                    self.points,
+                    _a("m", "point cloud in the sensor frame S; NaN where no return"),
+                ),
+                "observed": (
+                    ("time", "ray"),
+                    self.observed.astype(np.int8),
+                    _a("1", "1 if the ray returned a point"),
+                ),
+                "q_CL": (("time", "quat"), self.q_CL, _a("1", "sensor attitude, maps L into S")),
+                "q_LI": (("time", "quat"), self.q_LI, _a("1", "LVLH attitude, maps I into L")),
+            },
+            coords={
+                "time": ("time", self.t, {"units": "s"}),
+                "ray": np.arange(self.points.shape[1]),
+                "xyz": ["x", "y", "z"],
+                "quat": ["x", "y", "z", "w"],
+            },
+            attrs={
+                "title": "tumblenav depth measurements",
+                "scenario": scenario_name,
+                "sensor": "flash LIDAR / ToF, boresight +y of S",
+                "fov_rad": self.fov_rad,
+                "range_noise_m": self.range_noise_m,
+            },
+        )
+
+
+def target_model(scenario: Scenario):
+    """The target's geometry (procedural satellite or the user's mesh)."""
+    from tumblenav import target_model as tm
+
+    cfg = scenario.target.model
+    if cfg.kind == "file":
+        return tm.load_mesh(cfg.path)
+    return tm.procedural_satellite(
+        bus_m=tuple(cfg.bus_m),
+        panel_m=tuple(cfg.panel_m),
+        panel_thickness_m=cfg.panel_thickness_m,
+        ring_radius_m=cfg.ring_radius_m,
+        ring_height_m=cfg.ring_height_m,
+        nozzle_radius_m=cfg.nozzle_radius_m,
+        nozzle_height_m=cfg.nozzle_height_m,
+    )
+
+
+def simulate_depth(
+    scenario: Scenario, truth: Truth, rng_sensor: np.random.Generator
+) -> DepthMeasurements:
+    """Scan the target mesh at the true pose at every epoch (Yu 2019 Sec. 4)."""
+    from tumblenav.sensors.depth import DepthSensor, scan
+
+    cfg = scenario.sensor
+    sensor = DepthSensor(
+        np.radians(cfg.fov_deg),
+        cfg.points,
+        cfg.range_noise_m,
+        cfg.outlier_fraction,
+        cfg.max_range_m,
+    )
+    model = target_model(scenario)
+    R_CL = rot.quat_to_matrix(truth.q_CL)
+    R_LT = truth.R_LT
+    # model frame M is parallel to T, its origin at -b in T (b: mass-centre offset)
+    p_MinL = truth.r_L - np.einsum("tij,j->ti", R_LT, truth.mass_centre_offset_T)
+    clouds, masks = [], []
+    for k in range(len(truth.t)):
+        R_SM = R_CL[k] @ R_LT[k]
+        pts, ok = scan(
+            sensor, model, R_SM, R_CL[k] @ p_MinL[k], rng_sensor, on_target=cfg.on_target
+        )
+        clouds.append(pts)
+        masks.append(ok)
+    # keep only the returns, padded to a common length (missing = NaN, explicit mask)
+    width = max(1, max(int(m.sum()) for m in masks))
+    P = np.full((len(clouds), width, 3), np.nan)
+    M = np.zeros((len(clouds), width), dtype=bool)
+    for k, (pts, ok) in enumerate(zip(clouds, masks, strict=True)):
+        P[k, : ok.sum()] = pts[ok]
+        M[k, : ok.sum()] = True
+    return DepthMeasurements(
+        t=truth.t,
+        points=P,
+        observed=M,
+        q_CL=truth.q_CL,
+        q_LI=truth.q_LI,
+        fov_rad=sensor.fov_rad,
+        range_noise_m=sensor.range_noise_m,
+    )
+
+
 def simulate(
     scenario: Scenario, seed: int | np.random.SeedSequence | None = None
-) -> tuple[Truth, StereoMeasurements | None]:
+) -> tuple[Truth, StereoMeasurements | DepthMeasurements]:
     """Truth and measurements of one run; ``seed`` defaults to the scenario's base seed."""
     streams = run_streams(scenario.montecarlo.seed if seed is None else seed)
     truth = simulate_truth(scenario, streams["features"])
-    meas = (
-        simulate_stereo(scenario, truth, streams["sensor"])
-        if scenario.sensor.kind == "stereo"
-        else None
-    )
-    return truth, meas
+    if scenario.sensor.kind == "stereo":
+        return truth, simulate_stereo(scenario, truth, streams["sensor"])
+    return truth, simulate_depth(scenario, truth, streams["sensor"])
