@@ -1,0 +1,100 @@
+"""Coarse pose of the target from one depth point cloud (Yu 2019 Sec. 2): extract planes,
+recognise the model's rectangles by their sides, and turn each recognised rectangle into the
+pose of the model frame M in the sensor frame S.
+
+For a rectangle P of the model (``R_MP``, centre ``c_M``) seen as a plane with frame ``R_SP``
+(:func:`tumblenav.frontends.planes.rectangle_frame`) and centroid ``r_m`` (eq. 3):
+``R_SM = R_SP R_MP^T`` and ``p_MinS = r_m - R_SM c_M`` (the centroid of a fully seen
+rectangle is its centre). The rectangle's four-fold symmetry (Fig. 2) is resolved against a
+predicted attitude when one is given (eq. 21-25); without one the fix is flagged ambiguous.
+A plane whose sides match no known rectangle (another surface, or a rectangle seen only in
+part) gives no fix, and the reason is returned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav.frontends.planes import (
+    RECTANGLE_SYMMETRIES,
+    distribution_matrix,
+    extract_planes,
+    rectangle_frame,
+    rectangle_sides,
+)
+from tumblenav.target_model import TargetModel
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    rectangle: str
+    R_SM: Array  # model frame M into the sensor frame S
+    p_MinS: Array  # model origin in S (m)
+    n_points: int
+    sides_m: tuple[float, float]
+    ambiguous: bool  # True when no prediction resolved the four-fold symmetry
+
+
+def pose_fixes(
+    points_S: Array,
+    model: TargetModel,
+    threshold_m: float,
+    rng: np.random.Generator,
+    sigma_m: float = 0.0,
+    R_SM_predicted: Array | None = None,
+    rel_tol: float = 0.08,
+    min_points: int = 50,
+) -> tuple[list[PoseFix], list[str]]:
+    """All rectangle fixes in one cloud, and why the other planes were skipped."""
+    pts = np.asarray(points_S, dtype=float)
+    pts = pts[np.all(np.isfinite(pts), axis=1)] if pts.size else pts.reshape(0, 3)
+    if len(pts) < max(3, min_points):
+        return [], [f"only {len(pts)} finite points"]
+    fixes, skipped = [], []
+    for plane in extract_planes(pts, threshold_m, rng, min_points=min_points):
+        dist = distribution_matrix(pts[plane.inliers])
+        b, a, _ = rectangle_sides(dist.eigenvalues, sigma_m)
+        rects = _matches(model, b, a, rel_tol)
+        if not rects:
+            skipped.append(
+                f"plane of {plane.n_inliers} points, sides {b:.3f} x {a:.3f} m: "
+                "no known rectangle (other surface, or seen in part)"
+            )
+            continue
+        R_SP = rectangle_frame(dist)
+        # candidates: every rectangle with these sides x the four symmetric frames (Fig. 2);
+        # the prediction picks the closest attitude (eq. 21-25), faces of equal size included
+        cands = [(r, R_SP @ S @ r.R_MP.T) for r in rects for S in RECTANGLE_SYMMETRIES]
+        # a face is seen only from outside: its outward normal points at the sensor
+        cands = [(r, R) for r, R in cands if (R @ r.R_MP[:, 2]) @ dist.centroid < 0] or cands
+        if R_SM_predicted is not None:
+            k = int(np.argmax([np.sum(np.asarray(R_SM_predicted) * c) for _, c in cands]))
+        else:
+            k = 0
+        rect, R_SM = cands[k]
+        fixes.append(
+            PoseFix(
+                rect.name,
+                R_SM,
+                dist.centroid - R_SM @ rect.centre_M,
+                plane.n_inliers,
+                (b, a),
+                R_SM_predicted is None,
+            )
+        )
+    return fixes, skipped
+
+
+def _matches(model: TargetModel, b: float, a: float, rel_tol: float) -> list:
+    """The model's rectangles whose (short, long) sides match within ``rel_tol``."""
+    out = []
+    for r in model.rectangles:
+        kb, ka = r.sides_m
+        if max(abs(b - kb) / kb, abs(a - ka) / ka) <= rel_tol:
+            out.append(r)
+    return out
