@@ -126,7 +126,9 @@ class ProceduralModelConfig(_Model):
     nozzle on -z (``tumblenav.target_model.procedural_satellite``)."""
 
     kind: Literal["procedural"] = "procedural"
-    bus_m: Vec3 = [1.0, 1.0, 1.2]
+    bus_m: Vec3 = Field(
+        [0.9, 1.2, 1.5], description="bus box (m); unequal sides keep its faces distinguishable"
+    )
     panel_m: Annotated[list[float], Field(min_length=2, max_length=2)] = [1.8, 0.8]
     panel_thickness_m: float = Field(0.03, gt=0)
     ring_radius_m: float = Field(0.3, ge=0)

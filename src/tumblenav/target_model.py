@@ -76,7 +76,7 @@ def _face_rectangles(name: str, extents: Array, centre: Array) -> list[Rectangle
 
 
 def procedural_satellite(
-    bus_m: tuple[float, float, float] = (1.0, 1.0, 1.2),
+    bus_m: tuple[float, float, float] = (0.9, 1.2, 1.5),
     panel_m: tuple[float, float] = (1.8, 0.8),
     panel_thickness_m: float = 0.03,
     ring_radius_m: float = 0.3,

@@ -38,6 +38,8 @@ class PoseFix:
     n_points: int
     sides_m: tuple[float, float]
     ambiguous: bool  # True when no prediction resolved the four-fold symmetry
+    candidates: tuple = ()  # every (R_SM, p_MinS) consistent with this rectangle
+    R_MP: Array | None = None  # the recognised rectangle's frame in M
 
 
 def pose_fixes(
@@ -85,6 +87,8 @@ def pose_fixes(
                 plane.n_inliers,
                 (b, a),
                 R_SM_predicted is None,
+                tuple((R, dist.centroid - R @ r.centre_M) for r, R in cands),
+                rect.R_MP,
             )
         )
     return fixes, skipped
@@ -97,4 +101,46 @@ def _matches(model: TargetModel, b: float, a: float, rel_tol: float) -> list:
         kb, ka = r.sides_m
         if max(abs(b - kb) / kb, abs(a - ka) / ka) <= rel_tol:
             out.append(r)
+    return out
+
+
+def consistent_start(fixes: list[PoseFix]) -> tuple[Array, Array]:
+    """Without a prediction: the candidate pose of the largest rectangle that agrees best with
+    the candidates of every other rectangle seen in the same scan (Yu 2019 Sec. 2.3, two or
+    more planes at once)."""
+    fixes = sorted(fixes, key=lambda f: -f.n_points)
+    best, score = fixes[0].candidates[0], np.inf
+    for R, p in fixes[0].candidates:
+        s = 0.0
+        for other in fixes[1:]:
+            s += min(np.linalg.norm(R - R2) + np.linalg.norm(p - p2) for R2, p2 in other.candidates)
+        if s < score:
+            best, score = (R, p), s
+    return best
+
+
+def model_symmetries(rectangles) -> list[Array]:
+    """Proper rotations among the 24 signed axis permutations that map the model's set of
+    rectangles onto itself: with rectangles alone the attitude is defined only up to these."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            G = np.zeros((3, 3))
+            for i, j in enumerate(perm):
+                G[i, j] = signs[i]
+            if np.linalg.det(G) < 0:
+                continue
+            ok = all(
+                any(
+                    np.allclose(G @ r.centre_M, q.centre_M, atol=1e-9)
+                    and np.allclose(G @ r.R_MP[:, 2], q.R_MP[:, 2], atol=1e-9)
+                    and np.allclose(r.sides_m, q.sides_m)
+                    for q in rectangles
+                )
+                for r in rectangles
+            )
+            if ok:
+                out.append(G)
     return out
