@@ -11,10 +11,11 @@ from tumblenav.target_model import load_mesh, procedural_satellite
 
 
 def test_procedural_satellite_geometry():
-    m = procedural_satellite()
+    m = procedural_satellite(bus_m=(1.0, 1.0, 1.2))
     assert m.mesh.bounds[1][0] == pytest.approx(0.5 + 1.8)  # bus half width + panel span
     names = {r.name for r in m.rectangles}
-    assert {"bus+x", "bus-z", "panel+x_+z", "panel-x_-z"} <= names
+    assert {"bus+y", "bus-y", "panel+x_+z", "panel-x_-z"} <= names
+    assert not {"bus+x", "bus-x", "bus+z", "bus-z"} & names  # panel roots, ring, nozzle
     for r in m.rectangles:
         assert np.allclose(r.R_MP.T @ r.R_MP, np.eye(3)) and np.isclose(np.linalg.det(r.R_MP), 1)
         assert r.sides_m[0] <= r.sides_m[1]
@@ -23,7 +24,9 @@ def test_procedural_satellite_geometry():
 
 
 def test_mass_properties_of_a_box_bus():
-    m = procedural_satellite(panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0)
+    m = procedural_satellite(
+        bus_m=(1.0, 1.0, 1.2), panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0
+    )
     c, moments = m.mass_properties()
     assert np.allclose(c, 0.0, atol=1e-3)
     # a 1 x 1 x 1.2 box of unit density: I = m (a^2 + b^2) / 12, m = 1.2
@@ -32,7 +35,9 @@ def test_mass_properties_of_a_box_bus():
 
 def test_scan_of_a_face_gives_its_distance_and_plane():
     """The bus face -y seen from 5 m along +y: range 4.5 m, a plane with the bus face's sides."""
-    m = procedural_satellite(panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0)
+    m = procedural_satellite(
+        bus_m=(1.0, 1.0, 1.2), panel_m=(1e-3, 1e-3), ring_radius_m=0, nozzle_radius_m=0
+    )
     sensor = DepthSensor(fov_rad=np.radians(20), points=4000)
     pts, ok = scan(sensor, m, np.eye(3), np.array([0.0, 5.0, 0.0]), np.random.default_rng(0))
     assert ok.sum() > 100 and np.all(np.isnan(pts[~ok]))

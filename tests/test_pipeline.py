@@ -161,8 +161,9 @@ def test_campaign_on_a_dask_cluster(tmp_path):
     """--scheduler ADDRESS: the same campaign on a (local, in-process) Dask cluster."""
     distributed = pytest.importorskip("distributed")
     sc = load_scenario(short_scenario(tmp_path))
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         s = run_campaign(sc, "ekf-dpacf", 2, tmp_path / "dask", scheduler=cluster.scheduler_address)
     assert s["runs"] == 2 and s["runs_failed"] == 0
     # the same runs done locally (seeds do not depend on where runs execute); rel 1e-6 and not
@@ -173,8 +174,21 @@ def test_campaign_on_a_dask_cluster(tmp_path):
 
 def test_unreachable_scheduler_is_bad_input(tmp_path, capsys):
     sc = short_scenario(tmp_path)
-    code, _, err = cli(["montecarlo", sc, "-e", "ekf-dpacf", "--runs", 1,
-                        "--scheduler", "tcp://127.0.0.1:9", "-o", tmp_path / "x"], capsys)
+    code, _, err = cli(
+        [
+            "montecarlo",
+            sc,
+            "-e",
+            "ekf-dpacf",
+            "--runs",
+            1,
+            "--scheduler",
+            "tcp://127.0.0.1:9",
+            "-o",
+            tmp_path / "x",
+        ],
+        capsys,
+    )
     assert code == 2 and "Dask scheduler" in err
 
 

@@ -89,7 +89,14 @@ def procedural_satellite(
     if np.any(bus <= 0) or min(panel_m) <= 0 or panel_thickness_m <= 0:
         raise InputError("satellite dimensions must be positive")
     parts = [trimesh.creation.box(extents=bus)]
-    rects = _face_rectangles("bus", bus, np.zeros(3))
+    # the panels' roots cross the bus faces +-x, and the docking ring and the nozzle stand on
+    # +-z: those faces are not clean rectangles and are not used for recognition
+    blocked = {"bus+x", "bus-x"}
+    if ring_radius_m > 0 and ring_height_m > 0:
+        blocked.add("bus+z")
+    if nozzle_radius_m > 0 and nozzle_height_m > 0:
+        blocked.add("bus-z")
+    rects = [r for r in _face_rectangles("bus", bus, np.zeros(3)) if r.name not in blocked]
     for sign in (+1.0, -1.0):
         ext = np.array([panel_m[0], panel_m[1], panel_thickness_m])
         centre = np.array([sign * (bus[0] / 2 + panel_m[0] / 2), 0.0, 0.0])

@@ -153,6 +153,14 @@ def fix_covariance(fx, sigma: float) -> tuple[Array, Array]:
     return cov_att, cov_pos
 
 
+def _only_model_symmetric(fix, syms: list[Array]) -> bool:
+    """True when all the candidate poses of one rectangle differ by symmetries of the model
+    (then starting from any of them is as good as any other: the attitude is defined only up
+    to those symmetries anyway)."""
+    R0 = fix.candidates[0][0] if fix.candidates else fix.R_SM
+    return all(any(np.allclose(R0.T @ R, G, atol=1e-6) for G in syms) for R, _ in fix.candidates)
+
+
 def measurement(x: Array, R_LI: Array) -> tuple[Array, Array]:
     """Model origin in L, ``p_ML = r - R_LT b``, and its Jacobian (3, 20)."""
     R_LT = R_LI @ rot.quat_to_matrix(x[0:4]).T
@@ -201,6 +209,7 @@ class DepthEKF:
         nis_dof = np.zeros(n)
         skipped: dict[str, int] = {"no_rectangle": 0, "gated_out": 0, "ambiguous_start": 0}
         x = P = None
+        syms = model_symmetries(model.rectangles)
         for k in range(n):
             if x is not None and k > 0:
                 x, P = _propagate(x, P, t[k] - t[k - 1], n_orb, tun.Q_diag)
@@ -212,7 +221,7 @@ class DepthEKF:
             fixes, why = pose_fixes(pts, model, thr, rng, sigma, R_SM_pred)
             if not fixes:
                 skipped["no_rectangle"] += 1
-            if x is None and len(fixes) == 1:
+            if x is None and len(fixes) == 1 and not _only_model_symmetric(fixes[0], syms):
                 # one rectangle alone leaves its four symmetric cases and faces of equal size
                 # undecided: wait for a scan with two or more (Yu 2019 Sec. 2.3)
                 skipped["ambiguous_start"] += 1
@@ -278,7 +287,7 @@ class DepthEKF:
             nis=nis,
             nis_dof=nis_dof,
             skipped=skipped,
-            info={"symmetries": model_symmetries(model.rectangles)},
+            info={"symmetries": syms},
         )
 
     def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
