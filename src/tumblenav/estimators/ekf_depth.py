@@ -61,6 +61,11 @@ class DepthTuning(BaseModel):
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
     plane_threshold_m: float | None = Field(None, gt=0, description="default: 3 x range noise")
     gate_probability: float = Field(0.9999, gt=0, lt=1)
+    multi_solution_fix: bool = Field(
+        True,
+        description="resolve each rectangle's symmetric cases against the prediction "
+        "(Yu 2019 eq. 21-25); false reproduces the paper's Fig. 9 (180-degree jumps)",
+    )
 
 
 def inertia_matrix(l: Array) -> Array:
@@ -218,7 +223,9 @@ class DepthEKF:
             R_SM_pred = None
             if x is not None:
                 R_SM_pred = R_CL[k] @ R_LI[k] @ rot.quat_to_matrix(x[0:4]).T
-            fixes, why = pose_fixes(pts, model, thr, rng, sigma, R_SM_pred)
+            fixes, why = pose_fixes(
+                pts, model, thr, rng, sigma, R_SM_pred if tun.multi_solution_fix else None
+            )
             if not fixes:
                 skipped["no_rectangle"] += 1
             if x is None and len(fixes) == 1 and not _only_model_symmetric(fixes[0], syms):
@@ -268,7 +275,8 @@ class DepthEKF:
                 d2 = nu @ np.linalg.solve(S, nu)
                 from scipy.stats import chi2
 
-                if d2 > chi2.ppf(tun.gate_probability, 6):  # NIS gate (rejections counted)
+                if tun.multi_solution_fix and d2 > chi2.ppf(tun.gate_probability, 6):
+                    # NIS gate (rejections counted); off without the fix, to show its jumps
                     skipped["gated_out"] += 1
                     continue
                 K = np.linalg.solve(S, H @ P).T
