@@ -245,23 +245,6 @@ class DepthEKF:
             for fx in fixes:
                 q_meas = rot.matrix_to_quat((R_LI[k].T @ R_LS @ fx.R_SM).T)  # R_TI = R_MS R_SL R_LI
                 p_ML = R_LS @ fx.p_MinS
-                if x is None:
-                    x = np.zeros(LAYOUT.nominal_dim)
-                    x[0:4] = q_meas
-                    x[7:12] = [1.0, 1.0, 0.0, 0.0, 0.0]  # unknown: a sphere
-                    x[12:15] = p_ML
-                    P = np.diag(
-                        np.r_[
-                            np.full(3, tun.P0_sigma_attitude_rad**2),
-                            np.full(3, tun.P0_sigma_rate_rad_s**2),
-                            np.full(5, tun.P0_sigma_inertia**2),
-                            np.full(3, tun.P0_sigma_position_m**2),
-                            np.full(3, tun.P0_sigma_velocity_m_s**2),
-                            np.full(3, tun.P0_sigma_offset_m**2),
-                        ]
-                    )
-                    skipped["ambiguous_start"] += int(fx.ambiguous)
-                    continue
                 cov_att, cov_pos = fix_covariance(fx, sigma)
                 R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)
                 R_TP = fx.R_MP if fx.R_MP is not None else np.eye(3)
