@@ -24,6 +24,7 @@ from tumblenav.frontends.planes import (
     extract_planes,
     rectangle_frame,
     rectangle_sides,
+    side_mismatch,
 )
 from tumblenav.target_model import TargetModel
 
@@ -96,12 +97,7 @@ def pose_fixes(
 
 def _matches(model: TargetModel, b: float, a: float, rel_tol: float) -> list:
     """The model's rectangles whose (short, long) sides match within ``rel_tol``."""
-    out = []
-    for r in model.rectangles:
-        kb, ka = r.sides_m
-        if max(abs(b - kb) / kb, abs(a - ka) / ka) <= rel_tol:
-            out.append(r)
-    return out
+    return [r for r in model.rectangles if side_mismatch((b, a), r.sides_m) <= rel_tol]
 
 
 def consistent_start(fixes: list[PoseFix]) -> tuple[Array, Array]:

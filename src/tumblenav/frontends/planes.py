@@ -180,15 +180,20 @@ def rectangle_sides(eigenvalues: Array, sigma: float = 0.0) -> tuple[float, floa
     return b, a, math.sqrt(max(lam[0], 0.0))
 
 
+def side_mismatch(sides: tuple[float, float], known: tuple[float, float]) -> float:
+    """Largest relative difference between two rectangles' (short, long) sides."""
+    b, a = sorted(sides)
+    kb, ka = sorted(known)
+    return max(abs(b - kb) / kb, abs(a - ka) / ka)
+
+
 def match_rectangle(
     sides: tuple[float, float], known: dict[str, tuple[float, float]], rel_tol: float = 0.05
 ) -> str | None:
     """Name of the known rectangle whose (short, long) sides match within ``rel_tol``."""
-    b, a = sorted(sides)
     best, err = None, rel_tol
-    for name, (s1, s2) in known.items():
-        kb, ka = sorted((s1, s2))
-        e = max(abs(b - kb) / kb, abs(a - ka) / ka)
+    for name, k in known.items():
+        e = side_mismatch(sides, k)
         if e <= err:
             best, err = name, e
     return best

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from tumblenav import rotations as rot
 from tumblenav.frontends.inertia import inertia_design, principal_frame
-from tumblenav.frontends.photogrammetric import g_frame_from_points
+from tumblenav.frontends.photogrammetric import g_frame_from_points, triplet_score
 from tumblenav.frontends.triangulation import (
     triangulate_parallel,
     triangulate_two_ray,
@@ -179,17 +179,7 @@ def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDA
         idx, ok = _best_triplet_batch(sub, subu)
         return np.take_along_axis(far, idx, axis=1), ok
     m1, m2, m3 = p[:, trip[:, 0]], p[:, trip[:, 1]], p[:, trip[:, 2]]
-    area2 = np.linalg.norm(np.cross(m2 - m1, m3 - m1), axis=-1)
-    longest = np.maximum.reduce(
-        [
-            np.linalg.norm(m2 - m1, axis=-1),
-            np.linalg.norm(m3 - m1, axis=-1),
-            np.linalg.norm(m3 - m2, axis=-1),
-        ]
-    )
-    score = np.where(
-        np.all(usable[:, trip], axis=-1), area2 / np.where(longest > 0, longest, 1), -1
-    )
+    score = np.where(np.all(usable[:, trip], axis=-1), triplet_score(m1, m2, m3), -1.0)
     score = np.nan_to_num(score, nan=-1.0)
     best = np.argmax(score, axis=1)
     return trip[best], score[np.arange(B), best] > 1e-6
