@@ -1,0 +1,995 @@
+"""Kabir 2025's UKF on stereo projections and optical flow (``ukf``), and a multiplicative
+(USQUE-style) variant of it (``ukf-mult``).
+
+Kabir & Bai, Sensors 2025, 25, 647, Sec. 2.1-2.2 and 3.2.  Known (Sec. 2.1): the target's mass
+centre ``rho0`` relative to the chaser, and the chaser's (fixed) attitude; the chaser does not
+rotate and L = I (``chaser.orbit: null``).
+
+State (Kabir 2025 eq. 5), in tumblenav's names and order::
+
+    x = [omega_TI_T (3), q_TI (4, [x,y,z,w]), k1, k2, p_1..p_N in T (3N)]
+
+Kabir's B is our T and his ``q`` (scalar first, ``nu_B = C(q) nu_I``) is our ``q_TI``.
+Inertia (Kabir 2025 eq. 6-8): the paper defines ``k1 = log(I1/I2)``, ``k2 = log(I2/I3)``
+(eq. 6) but then writes ``I = diag(exp k1, 1, exp k2)`` (eq. 7) and builds the Euler equations
+(eq. 8) on it; the two disagree on ``k2``.  We implement eq. 7, i.e. ``k2 = log(I3/I2)``:
+``I / I2 = diag(e^k1, 1, e^k2)`` and, from ``I w' = -w x (I w)``::
+
+    wx' = e^-k1 (1 - e^k2) wy wz,   wy' = (e^k2 - e^k1) wx wz,   wz' = e^-k2 (e^k1 - 1) wx wy
+
+(the extracted eq. 8 lost the minus signs in the exponents).  Kinematics ``dq_TI/dt`` by
+:func:`tumblenav.rotations.quat_derivative`; ``k`` and ``p`` constant (eq. 11-12); RK4 over
+each step (eq. 13).
+
+Measurements (eq. 16-25): per feature ``[u_R, v_R, u_L, v_L, u_L - u_R, du_R, dv_R, du_L,
+dv_L]`` (rad, rad/s) from :mod:`tumblenav.frontends.projections` with the flow taken by finite
+differences of the measured projections (eq. 27).  Features in C: ``rho_i = rho0_C + R_CI
+R_IT p_i``; the flow is that of a rigid rotation about ``rho0`` with ``omega_C = R_CI R_IT
+omega_TI_T``.  ``R`` is diagonal (``sigma_p``, ``sigma_d``, ``sigma_o``).  Beyond the paper
+(tuning ``flow_edges``, default ``drop``): no flow where eq. 27 falls back to its first- and
+second-order formulas, i.e. two samples at each end of every run of measurements; their
+truncation error is 30 (0.075 Hz) to 180 (0.025 Hz) times the paper's ``sigma_o`` and its last
+sample before an occlusion otherwise throws ``k`` off just before the filter must coast.
+
+Filters
+-------
+* ``ukf`` (the paper's): additive UKF on the 24-dim state with the 4-component quaternion
+  (normalised after every predict and update), scaled unscented transform (Sec. 3.2:
+  alpha = 0.1, beta = 2, kappa = 0), diagonal P0 and Q with the quaternion's variances on its
+  four components.  Its history reports the 23-dim error-state covariance: the quaternion
+  block is mapped by ``dtheta = 2 vec(dq (x) conj(q_hat))`` (the first-order form of
+  :func:`tumblenav.rotations.boxminus`, which also drops the quaternion's norm direction).
+* ``ukf-mult``: sigma points on the 23-dim error state with the attitude as a rotation vector,
+  ``q = exp(dtheta) (x) q_hat`` (tumblenav's boxplus), the quaternion kept unit, the mean
+  attitude as the weighted mean of the sigma points' errors about the propagated centre point
+  (USQUE-like, Crassidis & Markley 2003, in the left/global error of
+  :mod:`tumblenav.rotations`).  The quaternion variances of P0 and Q map to ``4 x`` those
+  values in rad^2 (``dtheta = 2 dq_vec``).  After each update the covariance is moved to the
+  new nominal attitude (error reset ``G = I + 1/2 [dtheta x]``, from the BCH formula); without
+  it the large early corrections from the paper's initial guess sent the filter to wrong
+  solutions (70 deg off at 1000 s on three seeds of four).  Once the attitude is lost (sigma > 180 deg, long
+  occlusions) its rotation-vector sigma points wrap and the run diverges; it is then stopped.
+
+Both filters propagate the sigma points (RK4) and redraw them from the predicted covariance
+for the update.  A run is stopped and counted in ``skipped['diverged']`` once its state or
+covariance stops being finite or becomes absurd (see ``_MAX_STATE``); later epochs are NaN.
+
+Behaviour worth knowing: the measurements are very precise (1e-5 rad) and the body frame is
+fixed only through the Euler dynamics, so from the paper's initial guess (27.8 deg, omega x
+1.75) the filters claim sub-degree attitude within a few steps while still ~28 deg off (NEES
+in the thousands) and converge only as the process noise lets them, over a few polhode
+periods (kabir2025 at 0.075 Hz, four seeds, after 1000 s: 0.6-0.7 deg for ``ukf``, 0.9-2.1
+deg for ``ukf-mult``).  From 10 % of those initial errors both are consistent (NEES/dof
+~0.8) and reach ~0.3 deg in 400 s (tests/test_ukf.py).
+
+Entry points: :func:`run_ukf` runs either filter on prepared measurements ``z`` (n, N, 9) and
+variances (n, N, 9) (NaN = not available), so that pseudo-measurements (the GP predictions of
+``ukf-gp``) with their own variances can be fed; :func:`stereo_measurements` builds ``z`` and
+``R`` from a :class:`~tumblenav.simulation.StereoMeasurements`; :func:`paper_tuning` gives the
+paper's per-frequency Q and flow noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from scipy import stats
+
+from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.frontends import projections as proj
+
+Array = NDArray[np.float64]
+Variant = Literal["additive", "mult"]
+
+__all__ = [
+    "KabirGeometry",
+    "KabirTuning",
+    "KabirUKF",
+    "euler_rhs_k",
+    "geometry",
+    "initial_state",
+    "layout",
+    "measurement_model",
+    "paper_tuning",
+    "parse_tuning",
+    "propagate_rotation",
+    "run_ukf",
+    "stereo_measurements",
+    "tumbling_frequency_hz",
+]
+
+# Kabir 2025 Sec. 3.2, per tumbling frequency f_T (Hz): Q of omega (rad^2/s^2), Q of each
+# quaternion component, and sigma_o of the optical flow (rad/s).
+_PAPER_PER_FREQUENCY = {
+    0.025: (2.5e-9, 4e-10, 1e-5),
+    0.075: (2.5e-7, 4e-8, 5e-4),
+    0.125: (2.5e-5, 4e-6, 5e-4),
+    0.175: (2.5e-5, 4e-6, 1e-3),
+}
+
+
+def layout(n_features: int) -> StateLayout:
+    """Kabir 2025 eq. 5 in tumblenav's block names: nominal 9 + 3N, error 8 + 3N."""
+    return StateLayout(
+        (
+            Block("rate", "vector", 3),
+            Block("attitude", "quat", 3),
+            Block("inertia", "vector", 2),
+            Block("features", "vector", 3 * n_features),
+        )
+    )
+
+
+# --- tuning --------------------------------------------------------------------------------
+
+
+class KabirTuning(BaseModel):
+    """``estimator.tuning`` keys of ukf / ukf-mult (all optional; defaults: Kabir 2025
+    Sec. 3.2 for f_T = 0.025 Hz; use :func:`paper_tuning` for the other frequencies)."""
+
+    model_config = ConfigDict(extra="forbid")
+    init: Literal["paper", "triangulated"] = Field(
+        "paper",
+        description="'paper': Kabir 2025 Sec. 3.2's guess made from the scenario's true initial "
+        "values (omega x init_rate_factor, the printed 27.8 deg attitude offset, k = 0, "
+        "features + init_feature_offset_m); 'triangulated': from the first epoch's measurements "
+        "alone (q = identity, features triangulated, omega from the optical flow, k = 0)",
+    )
+    init_rate_factor: float = Field(1.75, description="paper init: omega_hat0 / omega_true0")
+    init_feature_offset_m: float = Field(0.7, description="paper init: added to each component")
+    init_q_offset_wxyz: list[float] = Field(
+        [0.9707, 0.1386, 0.1386, 0.1386],
+        min_length=4,
+        max_length=4,
+        description="paper init: q_hat0 = offset (x) q0_true, scalar first as printed (the "
+        "paper's guess against its q0 = [1, 0, 0, 0]: 27.8 deg about [1, 1, 1])",
+    )
+    alpha: float = Field(0.1, gt=0, le=1, description="unscented spread (Sec. 3.2)")
+    beta: float = Field(2.0, ge=0)
+    kappa: float = 0.0
+    p0_omega_var: float = Field(0.1225, gt=0, description="rad^2/s^2")
+    p0_quat_var: float = Field(0.04, gt=0, description="per quaternion component")
+    p0_k_var: float = Field(0.01, gt=0)
+    p0_feature_var: float = Field(2.25, gt=0, description="m^2")
+    q_omega_var: float = Field(2.5e-9, ge=0, description="rad^2/s^2 per step")
+    q_quat_var: float = Field(4e-10, ge=0, description="per quaternion component per step")
+    q_k_var: float = Field(3.6e-5, ge=0, description="per step")
+    q_feature_var: float = Field(1e-6, ge=0, description="m^2 per step")
+    sigma_p_rad: float | None = Field(
+        None, gt=0, description="projection noise; default: the sensor's noise_px / focal_px"
+    )
+    sigma_d_rad: float | None = Field(None, gt=0, description="disparity; default: sigma_p")
+    sigma_flow_rad_s: float = Field(1e-5, gt=0, description="optical flow noise sigma_o")
+    flow_edges: Literal["drop", "paper"] = Field(
+        "drop",
+        description="'drop': no flow where Kabir 2025 eq. 27 falls back to its first- and "
+        "second-order differences (two samples at each end of every run of measurements: their "
+        "truncation error is tens to hundreds of sigma_o at the paper's tuning); 'paper': use "
+        "eq. 27 everywhere",
+    )
+    gate_probability: float | None = Field(
+        None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
+    )
+
+
+def parse_tuning(raw: dict[str, Any] | None, model: type[KabirTuning] = KabirTuning) -> KabirTuning:
+    """Validate ``estimator.tuning``; InputError naming the key on unknown keys / bad values."""
+    try:
+        return model.model_validate(raw or {})
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        raise InputError(f"estimator.tuning.{loc}: {msg}") from None
+
+
+def paper_tuning(f_T_hz: float) -> dict[str, float]:
+    """Kabir 2025 Sec. 3.2's per-frequency tuning: ``q_omega_var``, ``q_quat_var``,
+    ``sigma_flow_rad_s`` for f_T in 0.025, 0.075, 0.125, 0.175 Hz."""
+    for f, (qw, qq, so) in _PAPER_PER_FREQUENCY.items():
+        if abs(f_T_hz - f) < 1e-6:
+            return {"q_omega_var": qw, "q_quat_var": qq, "sigma_flow_rad_s": so}
+    raise InputError(
+        f"Kabir 2025 tunes only f_T = {', '.join(map(str, _PAPER_PER_FREQUENCY))} Hz; "
+        f"got {f_T_hz:g} Hz"
+    )
+
+
+def tumbling_frequency_hz(scenario: Any) -> float:
+    """``f_T = |omega0| / (2 pi)``: Kabir 2025 Sec. 3 writes ``omega0 = 2 pi f_T u`` with the
+    unit vector ``u = [2/3, 1/3, 2/3]`` (printed rounded to [0.67, 0.33, 0.67])."""
+    return float(np.linalg.norm(scenario.target.omega0_T_rad_s) / (2.0 * np.pi))
+
+
+# --- the model -----------------------------------------------------------------------------
+
+
+def _euler_coefficients(k: Array) -> Array:
+    """``[e^-k1 (1 - e^k2), e^k2 - e^k1, e^-k2 (e^k1 - 1)]`` of :func:`euler_rhs_k`."""
+    e1, e2 = np.exp(k[..., 0]), np.exp(k[..., 1])
+    return np.stack([(1.0 - e2) / e1, e2 - e1, (e1 - 1.0) / e2], axis=-1)
+
+
+def euler_rhs_k(omega_T: Array, k: Array) -> Array:
+    """Torque-free Euler equations with ``I / I2 = diag(e^k1, 1, e^k2)``, (..., 3) rad/s^2.
+
+    Kabir 2025 eq. 6-8: eq. 7's ``I = diag(exp k1, 1, exp k2)`` is used, i.e.
+    ``k1 = log(I1/I2)``, ``k2 = log(I3/I2)`` (eq. 6 prints ``log(I2/I3)``, inconsistent with
+    eq. 7-8), and eq. 8 with the minus signs in its exponents restored::
+
+        wx' = e^-k1 (1 - e^k2) wy wz,  wy' = (e^k2 - e^k1) wx wz,  wz' = e^-k2 (e^k1 - 1) wx wy
+    """
+    w = np.asarray(omega_T, dtype=float)
+    return _euler_coefficients(np.asarray(k, dtype=float)) * w[..., [1, 0, 0]] * w[..., [2, 2, 1]]
+
+
+# dq/dt = -1/2 [omega; 0] (x) q is bilinear in omega and q: its coefficients
+# _KIN[i, j, :] = quat_derivative(e_j, e_i), taken once from the rotations module so that the
+# convention is the module's, make the derivative two small matrix products per RK4 stage.
+_KIN = np.stack([rot.quat_derivative(np.eye(4), np.eye(3)[i]) for i in range(3)]).reshape(3, 16)
+
+
+def _quat_rate(q: Array, omega: Array) -> Array:
+    """:func:`tumblenav.rotations.quat_derivative` (``q`` (..., 4), ``omega`` (..., 3))."""
+    W = (omega @ _KIN).reshape(omega.shape[:-1] + (4, 4))  # [j, :] = derivative of e_j
+    return (q[..., None, :] @ W)[..., 0, :]
+
+
+def propagate_rotation(omega_T: Array, q_TI: Array, k: Array, dt: float) -> tuple[Array, Array]:
+    """RK4 of Kabir 2025 eq. 8-10 (Euler in k1, k2 form + quaternion kinematics
+    ``dq_TI/dt = -1/2 [omega; 0] (x) q_TI``) over ``dt``; stacks (...).
+
+    The quaternion is not normalised here (the additive UKF propagates non-unit sigma points;
+    the kinematics are linear in ``q``).
+    """
+    c = _euler_coefficients(k)
+
+    def f(w, q):
+        return c * w[..., [1, 0, 0]] * w[..., [2, 2, 1]], _quat_rate(q, w)
+
+    h = 0.5 * dt
+    k1w, k1q = f(omega_T, q_TI)
+    k2w, k2q = f(omega_T + h * k1w, q_TI + h * k1q)
+    k3w, k3q = f(omega_T + h * k2w, q_TI + h * k2q)
+    k4w, k4q = f(omega_T + dt * k3w, q_TI + dt * k3q)
+    s = dt / 6.0
+    return (
+        omega_T + s * (k1w + 2.0 * (k2w + k3w) + k4w),
+        q_TI + s * (k1q + 2.0 * (k2q + k3q) + k4q),
+    )
+
+
+@dataclass(frozen=True)
+class KabirGeometry:
+    """What Kabir 2025 Sec. 2.1 takes as known.
+
+    R_CI : (3, 3) rig attitude (constant: rotationally fixed chaser, L = I).
+    rho0_C, rho0_dot_C : (n, 3) target mass centre in C (m) and its velocity (m/s).
+    centres_x : (2,) ``(x_left, x_right)`` of the camera centres in C (m).
+    """
+
+    R_CI: Array
+    rho0_C: Array
+    rho0_dot_C: Array
+    centres_x: Array
+
+
+def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
+    """The known geometry at times ``t``: the mass centre from the scenario
+    (``r0_L_m + t v0_L_m_s``, L = I since the chaser has no orbit), the rig attitude from the
+    measurements' ``q_CL``/``q_LI`` (else from the scenario's camera mount), the rig from the
+    measurements (else from the scenario's sensor)."""
+    from tumblenav import sensors
+    from tumblenav.simulation import make_rig
+
+    if scenario.chaser.orbit is not None:
+        raise InputError(
+            "Kabir 2025's UKF assumes an inertially fixed chaser (Sec. 2.1): set chaser.orbit: "
+            f"null (scenario {scenario.name} has an orbit)"
+        )
+    if scenario.sensor.kind != "stereo":
+        raise InputError(
+            f"scenario {scenario.name} has a {scenario.sensor.kind} sensor, not stereo"
+        )
+    t = np.asarray(t, dtype=float)
+    tg = scenario.target
+    r_L = np.asarray(tg.r0_L_m, float) + np.outer(t, tg.v0_L_m_s)
+    if meas is not None:
+        R_CI = rot.quat_to_matrix(rot.quat_multiply(meas.q_CL, meas.q_LI))
+        rig = meas.rig
+    else:
+        if scenario.chaser.attitude == "target-pointing":
+            R_LC = sensors.target_pointing_R_LC(r_L)
+        else:
+            R_LC = np.broadcast_to(scenario.chaser.R_LC_fixed, (len(t), 3, 3))
+        R_CI = np.swapaxes(R_LC, -1, -2)
+        rig = make_rig(scenario.sensor)
+    R_CI = np.asarray(R_CI).reshape(-1, 3, 3)
+    if np.abs(R_CI - R_CI[0]).max() > 1e-9:
+        raise InputError(
+            "Kabir 2025's optical-flow model needs a rotationally fixed rig (Sec. 2.1); the "
+            "rig attitude changes during the run"
+        )
+    R = R_CI[0]
+    return KabirGeometry(
+        R_CI=R,
+        rho0_C=r_L @ R.T,
+        rho0_dot_C=np.broadcast_to(R @ np.asarray(tg.v0_L_m_s, float), (len(t), 3)).copy(),
+        centres_x=proj.parallel_centres_x(rig),
+    )
+
+
+def _rotation_coefficients() -> Array:
+    """(16, 9) ``C`` with ``R(q) = (q q^T).ravel() @ C / |q|^2`` equal to
+    :func:`tumblenav.rotations.quat_to_matrix` (which is a quadratic form of the unit
+    quaternion): the symmetric bilinear form by polarisation of the module's own function."""
+    E = np.eye(4)
+    M = rot.quat_to_matrix
+    C = np.zeros((4, 4, 9))
+    for a in range(4):
+        for b in range(4):
+            # H(q) = |q|^2 M(q) is quadratic: C[a, b] = (H(e_a + e_b) - H(e_a) - H(e_b)) / 2,
+            # and C[a, a] = H(e_a); here |e_a + e_b|^2 = 2 for a != b
+            if a == b:
+                C[a, a] = M(E[a]).ravel()
+            else:
+                C[a, b] = (2.0 * M(E[a] + E[b]) - M(E[a]) - M(E[b])).ravel() / 2.0
+    return C.reshape(16, 9)
+
+
+_ROT = _rotation_coefficients()
+_SKEW = rot.skew(np.eye(3)).reshape(3, 9)  # skew(v) = (v @ _SKEW).reshape(3, 3) (linear in v)
+
+
+def _rotation_matrix(q: Array) -> Array:
+    """:func:`tumblenav.rotations.quat_to_matrix` for stacks of (not necessarily unit) q."""
+    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
+    return ((qq @ _ROT) / np.sum(q * q, axis=-1, keepdims=True)).reshape(q.shape[:-1] + (3, 3))
+
+
+def measurement_model(
+    x: Array, R_CI: Array, rho0_C: Array, rho0_dot_C: Array, centres_x: Array
+) -> Array:
+    """Kabir 2025 eq. 22-23 for states ``x`` (..., nominal): (..., N, 9).
+
+    ``rho_i = rho0_C + R_CI R_IT p_i`` (eq. 4 in C), ``omega_C = R_CI R_IT omega_TI_T``; the
+    quaternion need not be unit (it is normalised in the rotation matrix).
+    """
+    R_CT = R_CI @ np.swapaxes(_rotation_matrix(x[..., 3:7]), -1, -2)
+    p = x[..., 9:].reshape(x.shape[:-1] + (-1, 3))
+    rho = rho0_C[..., None, :] + p @ np.swapaxes(R_CT, -1, -2)
+    omega_C = (R_CT @ x[..., 0:3, None])[..., 0]
+    return proj.kabir_h(rho, rho0_C, omega_C, centres_x, rho0_dot_C)
+
+
+def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[Array, Array]:
+    """``z`` (n, N, 9) and its variances (n, N, 9) from pixel measurements.
+
+    ``z_i = [u_R, v_R, u_L, v_L, u_L - u_R, du_R, dv_R, du_L, dv_L]`` from
+    :func:`~tumblenav.frontends.projections.normalised` and the flow by
+    :func:`~tumblenav.frontends.projections.finite_difference_rate` (Kabir 2025 eq. 27) of the
+    measured projections (by default only where eq. 27 is fourth order, see ``flow_edges``);
+    NaN where not available.  Variances: ``sigma_p^2`` (default the
+    sensor's ``noise_px / focal_px``), ``sigma_d^2`` (default ``sigma_p^2``) and
+    ``sigma_flow^2`` (Kabir 2025 eq. 24-25, diagonal).
+    """
+    tun = tuning or KabirTuning()
+    t = np.asarray(meas.t, dtype=float)
+    dts = np.diff(t)
+    if len(t) < 2 or np.ptp(dts) > 1e-9 * max(1.0, float(np.abs(dts).max())):
+        raise InputError("Kabir 2025's finite differences need uniformly sampled measurements")
+    w, _ = proj.normalised(meas)
+    flow = proj.finite_difference_rate(w, float(dts[0]))
+    if tun.flow_edges == "drop":
+        flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
+    z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
+    sp = tun.sigma_p_rad
+    if sp is None:
+        sp = float(meas.noise_px) / float(meas.rig.left.focal_px)
+        if not sp > 0:
+            raise InputError(
+                "the sensor noise is zero or unknown: set estimator.tuning.sigma_p_rad"
+            )
+    sd = tun.sigma_d_rad or sp
+    var = np.array([sp**2] * 4 + [sd**2] + [tun.sigma_flow_rad_s**2] * 4)
+    return z, np.broadcast_to(var, z.shape).copy()
+
+
+# --- initial state -------------------------------------------------------------------------
+
+
+def _true_features(scenario: Any) -> Array:
+    from tumblenav.scenario import RandomFeatures
+    from tumblenav.simulation import draw_features
+
+    f = scenario.target.features_T_m
+    if isinstance(f, RandomFeatures) and f.seed is None:
+        raise InputError(
+            "estimator.tuning.init: 'paper' perturbs the true features, which need "
+            "target.features_T_m listed or seeded; use init: triangulated"
+        )
+    return draw_features(scenario, np.random.default_rng(0))[0]
+
+
+def initial_state(
+    scenario: Any, t: Array, z: Array, geom: KabirGeometry, tun: KabirTuning, variant: Variant
+) -> tuple[Array, Array]:
+    """``x0`` (nominal) and ``P0`` (24x24 for ``additive``, 23x23 for ``mult``) at ``t[0]``.
+
+    ``init: paper`` is Kabir 2025 Sec. 3.2: ``omega0 x 1.75``, ``q = offset (x) q0`` (the
+    printed guess ``[0.9707, 0.1386, 0.1386, 0.1386]`` is the offset from the paper's true
+    ``q0 = [1, 0, 0, 0]``), ``k = 0``, ``p + 0.7 m``, from the scenario's true values.
+    ``init: triangulated`` uses the measurements ``z`` (n, N, 9) of the first epochs only.
+    """
+    N = z.shape[1]
+    x = np.zeros(9 + 3 * N)
+    if tun.init == "paper":
+        tg = scenario.target
+        x[0:3] = tun.init_rate_factor * np.asarray(tg.omega0_T_rad_s, float)
+        off = np.asarray(tun.init_q_offset_wxyz, dtype=float)
+        if not np.linalg.norm(off) > 0:
+            raise InputError("estimator.tuning.init_q_offset_wxyz: must be a nonzero quaternion")
+        off = rot.quat_normalize(rot.from_scalar_first(off))
+        x[3:7] = rot.quat_multiply(off, rot.quat_normalize(tg.q0_TI))
+        p = _true_features(scenario)
+        if p.shape[0] != N:
+            raise InputError(f"the measurements have {N} features, the scenario {p.shape[0]}")
+        x[9:] = (p + tun.init_feature_offset_m).ravel()
+    else:
+        x[0:3], x[3:7], x[9:] = _triangulated_start(t, z, geom)
+    if variant == "additive":
+        var = [tun.p0_omega_var] * 3 + [tun.p0_quat_var] * 4
+    else:  # dtheta = 2 dq_vec
+        var = [tun.p0_omega_var] * 3 + [4.0 * tun.p0_quat_var] * 3
+    var += [tun.p0_k_var] * 2 + [tun.p0_feature_var] * (3 * N)
+    return x, np.diag(var)
+
+
+def _triangulated_start(t: Array, z: Array, geom: KabirGeometry) -> tuple[Array, Array, Array]:
+    """At ``t[0]``: q_TI = identity (T := I); features triangulated in C; omega_C by least
+    squares on ``w_dot = A omega`` (Kabir 2025 eq. 18-19) with the flow from the one-sided
+    second-order difference of the first three epochs' projections (else ``z[0]``'s flow)."""
+    z0 = z[0]
+    cl, cr = geom.centres_x
+    ok = np.all(np.isfinite(z0[:, [0, 1, 2, 4]]), axis=1)
+    if ok.sum() < 2:
+        raise InputError("estimator.tuning.init: 'triangulated' needs >= 2 stereo features at t0")
+    y = (cr - cl) / z0[:, 4]  # disparity u_L - u_R = b / y
+    rho = np.stack([z0[:, 2] * y + cl, y, z0[:, 1] * y], -1)
+    rho0 = geom.rho0_C[0]
+    flow = z0[:, 5:9]
+    if len(t) >= 3 and np.isclose(t[2] - t[1], t[1] - t[0]):
+        w = z[:3, :, 0:4]
+        one_sided = (-3.0 * w[0] + 4.0 * w[1] - w[2]) / (2.0 * (t[1] - t[0]))
+        flow = np.where(np.isfinite(one_sided), one_sided, flow)
+    A_R, A_L = proj.flow_matrices(rho, rho0, geom.centres_x)
+    A = np.concatenate([A_R, A_L], axis=1).reshape(-1, 3)  # rows du_R, dv_R, du_L, dv_L
+    J = proj.projection_jacobian(rho, geom.centres_x)[:, ::-1].reshape(len(z0), 4, 3)
+    b = (flow - J @ geom.rho0_dot_C[0]).reshape(-1)  # flow of the rotation alone
+    use = np.repeat(ok, 4) & np.isfinite(b)
+    if use.sum() < 6:
+        raise InputError("estimator.tuning.init: 'triangulated' needs the flow of >= 2 features")
+    omega_C = np.linalg.lstsq(A[use], b[use], rcond=None)[0]
+    R_TC = geom.R_CI.T  # q_TI = identity: T = I
+    p = np.where(ok[:, None], (rho - rho0) @ R_TC.T, 0.0)
+    return R_TC @ omega_C, rot.IDENTITY.copy(), p.ravel()
+
+
+# --- the filter ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Unscented:
+    """Scaled unscented transform (Julier 2002; Kabir 2025 Sec. 3.2 alpha, beta, kappa)."""
+
+    Wm: Array  # (2n+1,)
+    Wc: Array
+    c: float  # sqrt(n + lambda)
+
+    @classmethod
+    def make(cls, n: int, alpha: float, beta: float, kappa: float) -> _Unscented:
+        lam = alpha**2 * (n + kappa) - n
+        if not n + lam > 0:
+            raise InputError("estimator.tuning: alpha^2 (n + kappa) must be positive")
+        Wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        Wm[0] = lam / (n + lam)
+        Wc = Wm.copy()
+        Wc[0] += 1.0 - alpha**2 + beta
+        return cls(Wm=Wm, Wc=Wc, c=float(np.sqrt(n + lam)))
+
+    def offsets(self, P: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Sigma-point offsets (B, 2n+1, n): 0, +c columns of sqrt(P), -c columns; and the
+        runs whose covariance needed a repair (see :func:`_sqrt_psd`)."""
+        L, repaired = _sqrt_psd(P)
+        Lt = self.c * np.swapaxes(L, -1, -2)
+        return np.concatenate([np.zeros_like(Lt[:, :1]), Lt, -Lt], axis=1), repaired
+
+    def cov(self, A: Array, B_: Array) -> Array:
+        """``sum_i Wc_i A_i B_i^T`` for (B, S, a), (B, S, b) -> (B, a, b)."""
+        return np.swapaxes(A * self.Wc[:, None], -1, -2) @ B_
+
+
+def _sqrt_psd(P: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Square roots ``L L^T = P`` of (B, n, n): Cholesky, or for a run where that fails the
+    symmetric square root with eigenvalues clipped at 1e-15 of the largest (the negative
+    zeroth weight of the scaled transform can leave a slightly indefinite covariance); NaN for
+    a run whose P is not finite.  Returns also which runs were repaired."""
+    try:
+        return np.linalg.cholesky(P), np.zeros(P.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
+    L = np.full_like(P, np.nan)
+    repaired = np.zeros(P.shape[0], dtype=bool)
+    for b in range(P.shape[0]):
+        if not np.all(np.isfinite(P[b])):
+            continue
+        try:
+            L[b] = np.linalg.cholesky(P[b])
+        except np.linalg.LinAlgError:
+            lam, V = np.linalg.eigh(0.5 * (P[b] + P[b].T))
+            lam = np.maximum(lam, 1e-15 * np.abs(lam).max())
+            L[b] = V * np.sqrt(lam)
+            repaired[b] = True
+    return L, repaired
+
+
+# The Hamilton product is bilinear: _QMUL[i, 4 j + k] = (e_i (x) e_j)_k, taken once from
+# rotations.quat_multiply (its convention), makes the product two small matrix products
+# (np.cross inside quat_multiply dominated the multiplicative filter's time).
+_QMUL = np.stack([rot.quat_multiply(np.eye(4)[i], np.eye(4)) for i in range(4)]).reshape(4, 16)
+
+
+def _qmul(p: Array, q: Array) -> Array:
+    """:func:`tumblenav.rotations.quat_multiply` ``p (x) q`` for stacks (broadcasts)."""
+    W = (p @ _QMUL).reshape(p.shape[:-1] + (4, 4))
+    return (q[..., None, :] @ W)[..., 0, :]
+
+
+def _q_boxplus(q_hat: Array, dtheta: Array) -> Array:
+    """:func:`tumblenav.rotations.boxplus`."""
+    return _qmul(rot.exp_quat(dtheta), q_hat)
+
+
+def _q_boxminus(q: Array, q_hat: Array) -> Array:
+    """:func:`tumblenav.rotations.boxminus`."""
+    return rot.log_quat(_qmul(q, rot.quat_conjugate(q_hat)))
+
+
+def _boxplus(x: Array, dx: Array) -> Array:
+    """``x [+] dx`` for this layout (rate, attitude, inertia, features): the attitude by
+    :func:`tumblenav.rotations.boxplus`, the rest by addition; broadcasts."""
+    q = _q_boxplus(x[..., 3:7], dx[..., 3:6])
+    v = x[..., 0:3] + dx[..., 0:3]
+    if q.shape[:-1] != v.shape[:-1]:
+        q = np.broadcast_to(q, v.shape[:-1] + (4,))
+    return np.concatenate([v, q, x[..., 7:] + dx[..., 6:]], axis=-1)
+
+
+def _boxminus(x: Array, x_hat: Array) -> Array:
+    """``x [-] x_hat`` (inverse of :func:`_boxplus`)."""
+    d = x[..., 7:] - x_hat[..., 7:]
+    return np.concatenate(
+        [x[..., 0:3] - x_hat[..., 0:3], _q_boxminus(x[..., 3:7], x_hat[..., 3:7]), d], axis=-1
+    )
+
+
+def quat_cov_map(q_hat: Array) -> Array:
+    """(..., 3, 4) ``d dtheta / d q`` at ``q_hat`` for ``dtheta = 2 vec(q (x) conj(q_hat))``,
+    the first-order form of :func:`tumblenav.rotations.boxminus` (its null space is the
+    quaternion's norm direction)."""
+    qh = q_hat / np.linalg.norm(q_hat, axis=-1, keepdims=True)
+    E = _qmul(np.eye(4), rot.quat_conjugate(qh)[..., None, :])  # (..., 4 j, 4)
+    return 2.0 * np.swapaxes(E[..., :3], -1, -2)
+
+
+def additive_to_error_cov(x: Array, P: Array) -> Array:
+    """24x24 covariance of the additive state -> 23x23 error-state covariance (...)."""
+    n = P.shape[-1]
+    T = np.zeros(P.shape[:-2] + (n - 1, n))
+    T[..., 0:3, 0:3] = np.eye(3)
+    T[..., 3:6, 3:7] = quat_cov_map(x[..., 3:7])
+    T[..., 6:, 7:] = np.eye(n - 7)
+    return T @ P @ np.swapaxes(T, -1, -2)
+
+
+def _process_noise(tun: KabirTuning, N: int, variant: Variant) -> Array:
+    """Diagonal Q per step (Kabir 2025 eq. 14-15, Sec. 3.2)."""
+    if variant == "additive":
+        v = [tun.q_omega_var] * 3 + [tun.q_quat_var] * 4
+    else:
+        v = [tun.q_omega_var] * 3 + [4.0 * tun.q_quat_var] * 3
+    return np.diag(v + [tun.q_k_var] * 2 + [tun.q_feature_var] * (3 * N))
+
+
+def _filter(
+    t: Array,
+    z: Array,
+    Rv: Array,
+    x0: Array,
+    P0: Array,
+    geom: KabirGeometry,
+    tun: KabirTuning,
+    variant: Variant,
+    x_true: Array | None = None,
+) -> dict[str, Any]:
+    """Run B filters at once: z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d).
+
+    Returns x (B, n, nom), P (B, n, d, d) of the filter's own state (omitted when ``x_true``
+    (B, n, nom) is given: then err (B, n, 23) and nees (B, n) instead), nis, nis_dof,
+    rejected (B,), diverged_at (B,) epoch or -1, repairs (B,).
+    """
+    B, n, N, _ = z.shape
+    M = 9 * N
+    nom = 9 + 3 * N
+    d = P0.shape[-1]
+    additive = variant == "additive"
+    ut = _Unscented.make(d, tun.alpha, tun.beta, tun.kappa)
+    Wm = ut.Wm
+    Q = _process_noise(tun, N, variant)
+    z = z.reshape(B, n, M)
+    Rv = Rv.reshape(B, n, M)
+    usable = np.isfinite(z) & np.isfinite(Rv)
+    gate = None
+    if tun.gate_probability is not None:
+        gate = stats.chi2.ppf(tun.gate_probability, np.arange(10))  # by dof 0..9
+    diag = np.arange(M)
+    x = np.array(x0, dtype=float)
+    P = np.array(P0, dtype=float)
+    keep = x_true is None
+    xs = np.full((B, n, nom), np.nan)
+    Ps = np.full((B, n, d, d), np.nan) if keep else None
+    err = None if keep else np.full((B, n, d if not additive else d - 1), np.nan)
+    nees = None if keep else np.full((B, n), np.nan)
+    nis = np.full((B, n), np.nan)
+    nis_dof = np.zeros((B, n), dtype=np.int64)
+    rejected = np.zeros(B, dtype=np.int64)
+    repairs = np.zeros(B, dtype=np.int64)
+    diverged_at = np.full(B, -1, dtype=np.int64)
+    alive = np.ones(B, dtype=bool)
+    R_CI, cx = geom.R_CI, geom.centres_x
+
+    def sigma(x, P):
+        off, rep = ut.offsets(P)
+        repairs[rep & alive] += 1
+        X = x[:, None, :] + off if additive else _boxplus(x[:, None, :], off)
+        return X, off
+
+    # a diverging run overflows before it is caught (and stopped) by the finite check
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for k in range(n):
+            x_prev, P_prev = x, P
+            try:
+                if k > 0:  # --- predict (Kabir 2025 eq. 13-15) ---
+                    X, _ = sigma(x, P)
+                    w, q = propagate_rotation(
+                        X[..., 0:3], X[..., 3:7], X[..., 7:9], t[k] - t[k - 1]
+                    )
+                    if additive:
+                        X = np.concatenate([w, q, X[..., 7:]], axis=-1)
+                        x = Wm @ X
+                        D = X - x[:, None, :]
+                        x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
+                    else:
+                        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+                        X = np.concatenate([w, q, X[..., 7:]], axis=-1)
+                        x = Wm @ X
+                        # mean attitude: the weighted mean e_bar of the sigma points' errors e_i
+                        # about the propagated centre point, and their deviations e_i - e_bar
+                        # (BCH: exact to O(|e_i| |e_bar|), e_bar being second order in the spread)
+                        qc = q[:, 0]
+                        e = _q_boxminus(q, qc[:, None, :])
+                        e_bar = Wm @ e
+                        x[:, 3:7] = _q_boxplus(qc, e_bar)
+                        D = np.concatenate(
+                            [
+                                w - x[:, None, 0:3],
+                                e - e_bar[:, None, :],
+                                X[..., 7:] - x[:, None, 7:],
+                            ],
+                            axis=-1,
+                        )
+                    P = ut.cov(D, D) + Q
+                rows = usable[:, k] & alive[:, None]
+                if rows.any():  # --- update (Kabir 2025 eq. 22-25) ---
+                    X, off = sigma(x, P)
+                    Z = measurement_model(X, R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], cx).reshape(
+                        B, -1, M
+                    )
+                    zh = Wm @ Z
+                    dZ = Z - zh[:, None, :]
+                    S0 = ut.cov(dZ, dZ)
+                    S0[:, diag, diag] += np.where(rows, Rv[:, k], 0.0)
+                    Pxz = ut.cov(off, dZ)
+                    nu = np.where(rows, z[:, k] - zh, 0.0)
+                    if gate is not None:
+                        rows, nrej = _gate(S0, nu, rows, gate, N)
+                        rejected += nrej
+                        nu = np.where(rows, nu, 0.0)
+                    both = rows[:, :, None] & rows[:, None, :]
+                    S = np.where(both, S0, 0.0)
+                    S[:, diag, diag] += ~rows
+                    Pxz = Pxz * rows[:, None, :]
+                    sol = np.linalg.solve(
+                        S, np.concatenate([np.swapaxes(Pxz, 1, 2), nu[..., None]], 2)
+                    )
+                    Kt, Sinv_nu = sol[..., :d], sol[..., d]
+                    dx = (Pxz @ Sinv_nu[..., None])[..., 0]
+                    P = P - Pxz @ Kt
+                    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+                    if additive:
+                        x = x + dx
+                        x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
+                    else:
+                        x = _boxplus(x, dx)
+                        # reset of the error to the new nominal: theta' = theta - dtheta +
+                        # 1/2 [dtheta x] theta (BCH), so P <- G P G^T, G = I + 1/2 [dtheta x]
+                        G = np.broadcast_to(np.eye(d), P.shape).copy()
+                        G[:, 3:6, 3:6] += 0.5 * (dx[:, 3:6] @ _SKEW).reshape(B, 3, 3)
+                        P = G @ P @ np.swapaxes(G, -1, -2)
+                    nis[:, k] = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
+                    nis_dof[:, k] = rows.sum(1)
+                ok = _sane(x, P)
+            except np.linalg.LinAlgError:
+                ok = np.zeros(B, dtype=bool)
+                x, P = x_prev, P_prev
+            if not ok.all():
+                bad = alive & ~ok
+                diverged_at[bad] = k
+                alive &= ok
+                x = np.where(ok[:, None], x, x_prev)
+                P = np.where(ok[:, None, None], P, P_prev)
+                if not alive.any():
+                    break
+            xs[:, k] = np.where(alive[:, None], x, np.nan)
+            if keep:
+                Ps[:, k] = np.where(alive[:, None, None], P, np.nan)
+            else:
+                Pe = additive_to_error_cov(x, P) if additive else P
+                e = _boxminus(x_true[:, k], x)
+                err[:, k] = np.where(alive[:, None], e, np.nan)
+                sol = np.linalg.solve(Pe, e[..., None])[..., 0]
+                nees[:, k] = np.where(alive, np.sum(e * sol, axis=1), np.nan)
+    nis[~np.isfinite(xs[..., 0])] = np.nan
+    out = {
+        "x": xs,
+        "nis": nis,
+        "nis_dof": nis_dof,
+        "rejected": rejected,
+        "diverged_at": diverged_at,
+        "repairs": repairs,
+        "usable": usable.reshape(B, n, N, 9),
+    }
+    if keep:
+        out["P"] = Ps
+    else:
+        out["err"], out["nees"] = err, nees
+    return out
+
+
+# A run is stopped (counted as diverged) once its state or covariance is no longer finite or
+# is absurd: any state component beyond 1e6 (rad/s, log inertia ratio, m) or variance beyond
+# 1e12.  Kabir 2025 Sec. 3.2 stops its UKF the same way when the covariance of omega "reaches
+# virtually infinity" during occlusion.
+_MAX_STATE, _MAX_VARIANCE = 1e6, 1e12
+
+
+def _sane(x: Array, P: Array) -> NDArray[np.bool_]:
+    var = np.diagonal(P, axis1=1, axis2=2)
+    return (
+        np.all(np.abs(x) < _MAX_STATE, axis=1)
+        & np.all(var < _MAX_VARIANCE, axis=1)
+        & np.all(np.isfinite(P), axis=(1, 2))
+    )
+
+
+def _gate(
+    S: Array, nu: Array, rows: NDArray[np.bool_], gate: Array, N: int
+) -> tuple[NDArray[np.bool_], Array]:
+    """Per-feature chi-square gate on the 9 (or fewer available) components of each feature."""
+    B = S.shape[0]
+    r = rows.reshape(B, N, 9)
+    Sb = np.stack([S[:, 9 * i : 9 * i + 9, 9 * i : 9 * i + 9] for i in range(N)], axis=1)
+    both = r[..., :, None] & r[..., None, :]
+    Sb = np.where(both, Sb, 0.0) + (~r)[..., None] * np.eye(9)
+    nb = np.where(r, nu.reshape(B, N, 9), 0.0)
+    d2 = np.sum(nb * np.linalg.solve(Sb, nb[..., None])[..., 0], axis=-1)
+    dof = r.sum(-1)
+    reject = (dof > 0) & (d2 > gate[dof])
+    return (r & ~reject[..., None]).reshape(B, -1), reject.sum(axis=1)
+
+
+# --- entry points --------------------------------------------------------------------------
+
+
+def run_ukf(
+    scenario: Any,
+    t: Array,
+    z: Array,
+    R_diag: Array,
+    variant: Variant = "additive",
+    tuning: KabirTuning | None = None,
+    geom: KabirGeometry | None = None,
+    x0: Array | None = None,
+    P0: Array | None = None,
+) -> EstimateHistory:
+    """Kabir 2025's UKF (``variant='additive'``) or its multiplicative variant (``'mult'``)
+    on prepared measurements.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        For the known geometry (mass centre, rig) and, with ``init: paper``, the initial guess.
+    t : (n,) s
+        Epochs; the filter starts at ``t[0]`` (update with ``z[0]``), then predicts and
+        updates at every epoch.
+    z : (n, N, 9) array
+        Per feature ``[u_R, v_R, u_L, v_L, u_L - u_R, du_R, dv_R, du_L, dv_L]`` (rad, rad/s),
+        NaN where not available (that component is not used; an epoch with none is a
+        prediction only).
+    R_diag : (n, N, 9) array
+        Variance of each component of ``z`` (rad^2, rad^2/s^2); NaN = not available.
+    variant : 'additive' or 'mult'
+    tuning : KabirTuning, optional
+        Default: ``parse_tuning(scenario.estimator.tuning)``.
+    geom : KabirGeometry, optional
+        Default: :func:`geometry` ``(scenario, t)``.
+    x0, P0 : arrays, optional
+        Initial state and covariance (24x24 additive, 23x23 mult); default
+        :func:`initial_state`.
+
+    Returns
+    -------
+    EstimateHistory
+        Layout :func:`layout`; ``P`` is the 23-dim error-state covariance for both variants.
+    """
+    if variant not in ("additive", "mult"):
+        raise ValueError(f"variant must be 'additive' or 'mult', got {variant!r}")
+    tun = tuning if tuning is not None else parse_tuning(scenario.estimator.tuning)
+    t = np.asarray(t, dtype=float)
+    z = np.asarray(z, dtype=float)
+    R_diag = np.asarray(R_diag, dtype=float)
+    N = z.shape[1] if z.ndim == 3 else 0
+    if z.shape != (len(t), N, 9) or R_diag.shape != z.shape:
+        raise ValueError(f"z and R_diag must have shape (n, N, 9) = ({len(t)}, N, 9)")
+    geom = geom if geom is not None else geometry(scenario, t)
+    if x0 is None or P0 is None:
+        x0_, P0_ = initial_state(scenario, t, z, geom, tun, variant)
+        x0 = x0_ if x0 is None else x0
+        P0 = P0_ if P0 is None else P0
+    res = _filter(
+        t, z[None], R_diag[None], np.asarray(x0)[None], np.asarray(P0)[None], geom, tun, variant
+    )
+    x, P = res["x"][0], res["P"][0]
+    if variant == "additive":
+        P = additive_to_error_cov(x, P)
+    u = res["usable"][0]
+    div = int(res["diverged_at"][0])
+    return EstimateHistory(
+        t=t,
+        x=x,
+        P=P,
+        layout=layout(N),
+        nis=res["nis"][0],
+        nis_dof=res["nis_dof"][0],
+        skipped=_skipped(u, res, 0),
+        info={
+            "variant": variant,
+            "diverged_at_s": float(t[div]) if div >= 0 else None,
+            "tuning": tun.model_dump(),
+            "x0": np.asarray(x0),
+        },
+    )
+
+
+def _skipped(usable: NDArray[np.bool_], res: dict, b: int) -> dict[str, int]:
+    any_f = usable.any(axis=-1)  # (n, N)
+    return {
+        "no_measurement_epochs": int((~any_f.any(axis=-1)).sum()),
+        "unobserved_feature_epochs": int((~any_f).sum()),
+        "gated_out": int(res["rejected"][b]),
+        "diverged": int(res["diverged_at"][b] >= 0),
+        "covariance_repairs": int(res["repairs"][b]),
+    }
+
+
+def truth_in_layout(truth: Any) -> Array:
+    """The truth (n, 9 + 3N) in Kabir 2025's state: ``[omega_TI_T, q_TI, k1, k2, p]`` with
+    ``k1 = log(I1/I2)``, ``k2 = log(I3/I2)`` (eq. 7; see :func:`euler_rhs_k`)."""
+    I = np.diag(np.asarray(truth.inertia_T, dtype=float))
+    n = len(truth.t)
+    k = np.array([np.log(I[0] / I[1]), np.log(I[2] / I[1])])
+    f = np.asarray(truth.features_T, dtype=float).ravel()
+    return np.concatenate(
+        [truth.omega_TI_T, truth.q_TI, np.tile(k, (n, 1)), np.tile(f, (n, 1))], axis=1
+    )
+
+
+class KabirUKF:
+    """``ukf`` (Kabir 2025's additive UKF) and ``ukf-mult`` (USQUE-style variant)."""
+
+    needs = (
+        "stereo feature tracks from a parallel rig, the target's mass-centre position and an "
+        "inertially fixed chaser (Kabir 2025 Sec. 2.1)"
+    )
+
+    def __init__(self, variant: Variant) -> None:
+        self.variant = variant
+        self.name = "ukf" if variant == "additive" else "ukf-mult"
+        self.description = (
+            "Kabir 2025: UKF on stereo projections, disparity and optical flow (quaternion in "
+            "the state, additive)"
+            if variant == "additive"
+            else "Kabir 2025's UKF with a multiplicative attitude error (USQUE-style, 23-dim)"
+        )
+
+    def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        tun = parse_tuning(scenario.estimator.tuning)
+        geom = geometry(scenario, measurements.t, measurements)
+        z, R = stereo_measurements(measurements, tun)
+        return run_ukf(scenario, measurements.t, z, R, self.variant, tun, geom)
+
+    def run_batch(self, scenario: Any, measurements: list, rngs: list, truths: list) -> list:
+        """Many runs at once (vectorised over runs); one (RunErrors, skipped) per run."""
+        from tumblenav.metrics import RunErrors, error_magnitudes
+
+        tun = parse_tuning(scenario.estimator.tuning)
+        t = measurements[0].t
+        geoms = [geometry(scenario, m.t, m) for m in measurements]
+        g0 = geoms[0]
+        same = all(
+            np.array_equal(m.t, t)
+            and np.allclose(g.R_CI, g0.R_CI)
+            and np.allclose(g.rho0_C, g0.rho0_C)
+            and np.allclose(g.centres_x, g0.centres_x)
+            for m, g in zip(measurements, geoms, strict=True)
+        )
+        if not same:
+            raise ValueError("run_batch needs runs with the same epochs and geometry")
+        zs, Rs, x0s, P0s = [], [], [], []
+        for m in measurements:
+            z, R = stereo_measurements(m, tun)
+            x0, P0 = initial_state(scenario, t, z, g0, tun, self.variant)
+            zs.append(z)
+            Rs.append(R)
+            x0s.append(x0)
+            P0s.append(P0)
+        N = zs[0].shape[1]
+        x_true = np.stack([truth_in_layout(tr) for tr in truths])
+        res = _filter(
+            t,
+            np.stack(zs),
+            np.stack(Rs),
+            np.stack(x0s),
+            np.stack(P0s),
+            g0,
+            tun,
+            self.variant,
+            x_true=x_true,
+        )
+        lay = layout(N)
+        mags = error_magnitudes(res["err"], lay)
+        out = []
+        for b in range(len(measurements)):
+            r = RunErrors(
+                t=t,
+                errors={k: v[b] for k, v in mags.items()},
+                nees=res["nees"][b],
+                nees_dof=lay.dim,
+                nis=res["nis"][b],
+                nis_dof=res["nis_dof"][b],
+            )
+            out.append((r, _skipped(res["usable"][b], res, b)))
+        return out
+
+    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
+        return truth_in_layout(truth)
+
+
+register("ukf")(lambda: KabirUKF("additive"))
+register("ukf-mult")(lambda: KabirUKF("mult"))
