@@ -178,7 +178,7 @@ def register(name: str) -> Callable[[Callable[[], Estimator]], Callable[[], Esti
 
 def _load_builtin() -> None:
     # Importing the modules registers their estimators.
-    from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf  # noqa: F401
+    from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf, ukf_gp  # noqa: F401
 
 
 def available() -> dict[str, Estimator]:
