@@ -29,7 +29,11 @@ def reproduce(
         from tumblenav.papers import yu2019
 
         return yu2019.reproduce(Path(output), runs=runs, workers=workers, console=console)
+    if paper == "kabir2025":
+        from tumblenav.papers import kabir2025
+
+        return kabir2025.reproduce(Path(output), runs=runs, workers=workers, console=console)
     raise InputError(
         f"reproduce {paper} is not implemented yet (its estimator comes with its "
-        "own issue); available: hu2024, yu2019 (Tables 1-4 only)"
+        "own issue); available: hu2024, yu2019, kabir2025"
     )
