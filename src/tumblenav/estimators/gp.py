@@ -49,6 +49,7 @@ model whose noise estimate is far above the sensor noise is flagged as badly tra
 
 from __future__ import annotations
 
+import functools
 import itertools
 import time
 import warnings
@@ -73,6 +74,8 @@ __all__ = [
 ]
 
 TRUNCATION = 1e-13  # dropped prior variance, relative to the kernel's total (1)
+WARM_B = True
+FLAT1 = 1.0
 ELL0 = (1.0, 2.0)  # initial lengthscales (long, short period); the feature set grows if l shrinks
 
 
@@ -109,6 +112,21 @@ class _Features:
     @property
     def R(self) -> int:
         return 2 * len(self.n) - 1
+
+    @functools.cached_property
+    def lattice_index(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Flat indices into the (4 M1 + 1, 4 M2 + 1) lattice sums of ``a - b`` and ``a + b``
+        for every pair of features (K, K)."""
+        n, m = self.n, self.m
+        cols = 4 * self.M2 + 1
+
+        def flat(dn: NDArray[np.int64], dm: NDArray[np.int64]) -> NDArray[np.int64]:
+            return (dn + 2 * self.M1) * cols + (dm + 2 * self.M2)
+
+        return (
+            flat(n[:, None] - n[None, :], m[:, None] - m[None, :]),
+            flat(n[:, None] + n[None, :], m[:, None] + m[None, :]),
+        )
 
     @classmethod
     def build(cls, ell_min: ArrayLike, eps: float = TRUNCATION) -> _Features:
@@ -187,36 +205,25 @@ def _lattice(t: Array, Y: Array, periods: Array, feat: _Features) -> _Lattice:
 def _gram(lat: _Lattice, feat: _Features, periods: Array) -> tuple[Array, Array]:
     """``G = Phi^T Phi`` (R, R) and ``E_k = Phi^T d Phi / d log P_k`` (2, R, R) from the
     lattice sums: cos a cos b = (cos(a-b) + cos(a+b))/2 and so on."""
-    M1, M2 = feat.M1, feat.M2
-    n, m = feat.n, feat.m
-    dn_, sn_ = n[:, None] - n[None, :], n[:, None] + n[None, :]
-    dm_, sm_ = m[:, None] - m[None, :], m[:, None] + m[None, :]
-    Wd0, Ws0 = lat.W0[dn_ + 2 * M1, dm_ + 2 * M2], lat.W0[sn_ + 2 * M1, sm_ + 2 * M2]
-    Wd1, Ws1 = lat.W1[dn_ + 2 * M1, dm_ + 2 * M2], lat.W1[sn_ + 2 * M1, sm_ + 2 * M2]
-
-    def blocks(Wd, Ws):
-        cc = 0.5 * (Wd.real + Ws.real)
-        ss = 0.5 * (Wd.real - Ws.real)
-        cs = 0.5 * (Ws.imag - Wd.imag)  # sum cos_a sin_b
-        sc = 0.5 * (Ws.imag + Wd.imag)  # sum sin_a cos_b
-        return cc, ss, cs, sc
-
-    def assemble(cc, cs, sc, ss):
-        return np.block([[cc, cs[:, 1:]], [sc[1:, :], ss[1:, 1:]]])
-
-    cc, ss, cs, sc = blocks(Wd0, Ws0)
-    G = assemble(cc, cs, sc, ss)
+    idx_d, idx_s = feat.lattice_index
+    K = len(feat.n)
+    R = feat.R
+    W = np.stack([lat.W0.ravel(), lat.W1.ravel()])  # weights 1 and t
+    Wd, Ws = W[:, idx_d], W[:, idx_s]  # (2, K, K) at a - b and a + b
+    cc = 0.5 * (Wd.real + Ws.real)  # sum w cos_a cos_b
+    ss = 0.5 * (Wd.real - Ws.real)  # sum w sin_a sin_b
+    cs = 0.5 * (Ws.imag - Wd.imag)  # sum w cos_a sin_b
+    sc = 0.5 * (Ws.imag + Wd.imag)  # sum w sin_a cos_b
+    G = np.empty((R, R))
+    G[:K, :K], G[:K, K:], G[K:, :K], G[K:, K:] = cc[0], cs[0, :, 1:], sc[0, 1:, :], ss[0, 1:, 1:]
     # d/dlogP_k of cos_b = sin_b * g_b t, of sin_b = -cos_b * g_b t (g_b = 2 pi idx_b / P_k):
-    # E[a, b] = sum phi_a dphi_b = g_b * sum t phi_a {sin_b | -cos_b}
-    cc1, ss1, cs1, sc1 = blocks(Wd1, Ws1)
-    E = np.empty((2,) + G.shape)
-    for k, (idx, P) in enumerate(((n, periods[0]), (m, periods[1]))):
+    # E[a, b] = g_b * sum t phi_a {sin_b | -cos_b}
+    T = np.empty((R, R))
+    T[:K, :K], T[:K, K:], T[K:, :K], T[K:, K:] = cs[1], -cc[1, :, 1:], ss[1, 1:, :], -sc[1, 1:, 1:]
+    E = np.empty((2, R, R))
+    for k, (idx, P) in enumerate(((feat.n, periods[0]), (feat.m, periods[1]))):
         g = 2.0 * np.pi * idx / P
-        gc = np.concatenate([g, g[1:]])
-        # columns of cos-features: t phi_a sin_b ; columns of sin-features: -t phi_a cos_b
-        top = np.concatenate([cs1, -cc1[:, 1:]], axis=1)  # rows: cos_a
-        bot = np.concatenate([ss1[1:, :], -sc1[1:, 1:]], axis=1)  # rows: sin_a
-        E[k] = np.concatenate([top, bot], axis=0) * gc[None, :]
+        E[k] = T * np.concatenate([g, g[1:]])[None, :]
     return G, E
 
 
@@ -331,14 +338,15 @@ def _nll_grad(pre: _Prepared, th: _Theta, Y: Array, n_theta: int) -> tuple[float
     tvec = np.empty(D)
     Psi = np.empty((R, D))  # U Phi^T beta_j (rotated basis)
     dbr = np.einsum("krd,de->kre", lat.dFY / th.sigma[None, None, :], V)
-    # tr(Minv UE_kU) needs UE_kU transposed; Minv is symmetric so one triangle suffices
-    UEUt = [np.ascontiguousarray((u[:, None] * E[k] * u[None, :]).T) for k in range(2)]
+    # tr(Minv X_k) with X_k = U E_k U: potri returns the lower triangle of the symmetric Minv
+    # (zeros above), so tr(Minv X) = <tril(Minv), X + X^T> - <diag Minv, diag X>.
+    X = u[None, :, None] * E * u[None, None, :]
+    Xs = X + np.swapaxes(X, 1, 2)
+    Xd = np.diagonal(X, axis1=1, axis2=2)
     for j in range(D):
         Minv, info = linalg.lapack.dpotri(so.chol[j], lower=1)
         if info != 0:
             raise np.linalg.LinAlgError("potri failed")
-        Minv = np.tril(Minv)
-        Minv += np.tril(Minv, -1).T
         aj = so.alpha[:, j]
         g = br[:, j] - d[j] * (G @ (u * aj))  # Phi^T beta_j
         Psi[:, j] = u * g
@@ -349,7 +357,8 @@ def _nll_grad(pre: _Prepared, th: _Theta, Y: Array, n_theta: int) -> tuple[float
         g_l += gs @ dlogs
         for k in range(2):
             dg = dbr[k, :, j] - d[j] * (E[k].T @ (u * aj))
-            g_P[k] += d[j] * (np.vdot(Minv, UEUt[k]) - (u * g) @ (u * dg))
+            trace = np.vdot(Minv, Xs[k]) - diag_minv @ Xd[k]
+            g_P[k] += d[j] * (trace - (u * g) @ (u * dg))
     grad[:2] = g_P
     grad[2:4] = g_l
     # B~ = L L^T: d nll / d B~ = V (diag(t) - Psi^T Psi) V^T / 2
@@ -698,8 +707,10 @@ def _staged(th0: Array, t: Array, Yn: Array, maxiter: int) -> tuple[Array, float
     offdiag = [4 + i for i, (r, c) in enumerate(zip(*np.tril_indices(D), strict=True)) if r != c]
     diag_only[offdiag] = False
     th1 = th0.copy()
+    if WARM_B:
+        _, th1 = _score_periods(th1, t, Yn)
     th1[offdiag] = 0.0
-    th1, _, n1, _ = _optimise(th1, t, Yn, maxiter=maxiter, free=diag_only)
+    th1, _, n1, _ = _optimise(th1, t, Yn, maxiter=maxiter, free=diag_only, flat_nats=FLAT1)
     theta, nll, n2, res = _optimise(th1, t, Yn, maxiter=maxiter)
     return theta, nll, n1 + n2, res
 
