@@ -88,6 +88,11 @@ def noise_guess(y) -> float:
     return float(max(np.median(np.abs(np.diff(y, 3))) / 0.6745 / np.sqrt(20.0), 1e-9))
 
 
+def scalar(param) -> float:
+    """A GPy parameter of shape (1,) as a float (numpy 2 refuses float() on 1-d arrays)."""
+    return float(np.asarray(param).ravel()[0])
+
+
 def fit_gpy(GPy, t, Y, max_iters: int, rank: int):
     """Kabir 2025's GP in GPy on ``Y`` (N, 3); returns (predict(t) -> (n, 3), info)."""
     t0 = time.perf_counter()
@@ -112,19 +117,24 @@ def fit_gpy(GPy, t, Y, max_iters: int, rank: int):
         input_dim=1, num_outputs=D, kernel=k1 * k2, W_rank=rank, W=W, kappa=kappa
     )
     X = tc[:, None]
-    m = GPy.models.GPCoregionalizedRegression([X] * D, [Yn[:, [j]] for j in range(D)], kernel=kern)
-    for j, lik in enumerate(m.likelihood.likelihoods_list):
-        lik.variance = noise_guess(Yn[:, j]) ** 2
+    # noise set at construction: every later parameter change re-runs the exact inference
+    liks = [
+        GPy.likelihoods.Gaussian(variance=noise_guess(Yn[:, j]) ** 2, name=f"Gaussian_noise_{j}")
+        for j in range(D)
+    ]
+    m = GPy.models.GPCoregionalizedRegression(
+        [X] * D, [Yn[:, [j]] for j in range(D)], kernel=kern, likelihoods_list=liks
+    )
     m.optimize("lbfgs", max_iters=max_iters)
     train_s = time.perf_counter() - t0
     run = m.optimization_runs[-1]
-    per1, per2 = m.kern.parts[0].parts[0], m.kern.parts[0].parts[1]
+    per1, per2 = k1, k2  # GPy flattens the product: m.kern.parts is [per1, per2, B]
     info = {
         "train_s": train_s,
-        "periods": (float(per1.period), float(per2.period)),
-        "lengthscales_kabir": (2.0 * float(per1.lengthscale), 2.0 * float(per2.lengthscale)),
+        "periods": (scalar(per1.period), scalar(per2.period)),
+        "lengthscales_kabir": (2.0 * scalar(per1.lengthscale), 2.0 * scalar(per2.lengthscale)),
         "noise_std_rad": [
-            float(np.sqrt(lk.variance)) * scale for lk in m.likelihood.likelihoods_list
+            np.sqrt(scalar(lk.variance)) * scale for lk in m.likelihood.likelihoods_list
         ],
         "nfev": int(getattr(run, "funct_eval", -1)),
         "status": str(getattr(run, "status", "")),
