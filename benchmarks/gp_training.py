@@ -21,7 +21,7 @@ reported when the run is long enough (the default 3500 s is).
   (an exact likelihood on N D = 4500 values per evaluation), so ``--gpy-models K`` trains the
   first K features only and scales the time to five models (printed as extrapolated).
 
-GPy is a benchmark-only dependency, not in the package's extras; a separate venv::
+GPy is a benchmark-only dependency (the ``bench`` extra); a separate venv keeps it apart::
 
     python -m venv /tmp/gpyvenv
     /tmp/gpyvenv/bin/pip install -e . 'GPy>=1.15,<2'   # 1.15 is the first to support numpy 2
