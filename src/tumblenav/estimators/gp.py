@@ -272,6 +272,25 @@ class _Solve:
     alpha: Array  # (R, D)
 
 
+def _cholesky_jittered(M: Array) -> Array:
+    """Cholesky of ``M = I + d H``.  ``H = U G U`` is PSD in exact arithmetic, but its
+    rounding-level negative eigenvalues (~1e-13 |H|) times a huge ``d`` (a degenerate
+    optimiser step: signal-to-noise ratio 1e9) can break it; then add the smallest jitter
+    that works (the likelihood there is far from the optimum anyway)."""
+    try:
+        return linalg.cholesky(M, lower=True, check_finite=False)
+    except linalg.LinAlgError:
+        scale = float(np.max(np.diag(M)))
+        for rel in (1e-14, 1e-12, 1e-10, 1e-8, 1e-6):
+            try:
+                return linalg.cholesky(
+                    M + rel * scale * np.eye(len(M)), lower=True, check_finite=False
+                )
+            except linalg.LinAlgError:
+                continue
+        raise
+
+
 def _solve(G: Array, FY: Array, s: Array, th: _Theta, N: int) -> tuple[float, _Solve, Array]:
     D = FY.shape[1]
     Bt = th.L @ th.L.T
@@ -285,7 +304,7 @@ def _solve(G: Array, FY: Array, s: Array, th: _Theta, N: int) -> tuple[float, _S
     for j in range(D):
         M = H * d[j]
         M[np.diag_indices_from(M)] += 1.0
-        c = linalg.cholesky(M, lower=True, check_finite=False)
+        c = _cholesky_jittered(M)
         ub = u * br[:, j]
         alpha[:, j] = linalg.cho_solve((c, True), ub, check_finite=False)
         quad[j] = d[j] * ub @ alpha[:, j]
@@ -786,7 +805,11 @@ def _fit(t, Y, periods_init, candidates, sensor_noise_std, min_span_s, maxiter) 
     best: tuple[float, Array, Any] | None = None
     nfev = 0
     for P in starts[: max(candidates, 1) * 3]:
-        th_, nll_, n_, res_ = _staged(_initial_theta(Yn, P, noise0), tc, Yn, maxiter)
+        try:
+            th_, nll_, n_, res_ = _staged(_initial_theta(Yn, P, noise0), tc, Yn, maxiter)
+        except (linalg.LinAlgError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            tries.append({"start_periods_s": list(P), "error": str(exc)})
+            continue
         nfev += n_
         noise_ratio = float(np.exp(th_[-1]) / ref)
         tries.append({"start_periods_s": list(P), "nll": nll_, "noise_ratio": noise_ratio})
@@ -794,7 +817,10 @@ def _fit(t, Y, periods_init, candidates, sensor_noise_std, min_span_s, maxiter) 
             best = (nll_, th_, res_)
         if noise_ratio <= 1.5:
             break
-    assert best is not None
+    if best is None:
+        raise InputError(
+            f"GP training failed from every start ({len(tries)}): {tries[-1].get('error')}"
+        )
     nll, theta, res = best
     th = _Theta.unpack(theta, D)
     noise_std = th.sigma * scale
@@ -803,6 +829,12 @@ def _fit(t, Y, periods_init, candidates, sensor_noise_std, min_span_s, maxiter) 
     ratio = float(th.sigma[0] / ref)
     if not np.isfinite(nll):
         ok, reason = False, "likelihood is not finite"
+    elif tc[-1] < float(th.periods.max()):
+        ok = False
+        reason = (
+            f"training span {tc[-1]:.0f} s is shorter than the fitted long period "
+            f"{th.periods.max():.0f} s: the periodic kernel is not identified"
+        )
     elif ratio > 1.5:
         ok = False
         what = "sensor" if sensor_noise_std is not None else "data's white"
