@@ -156,7 +156,11 @@ def test_pseudo_measurements_follow_the_true_projections(runs):
     occluded = t >= LOSS
     np.testing.assert_array_equal(zp[~occluded], z[~occluded])  # measurements untouched
     np.testing.assert_array_equal(Rp, R)  # 'fixed' (the paper): the sensor's variances
-    assert np.isfinite(zp[occluded]).all()
+    assert np.isfinite(zp[occluded][..., :5]).all()
+    # flows: eq. 27 over the predicted series, kept only where it is fourth order (flow_edges
+    # 'drop', as for measured flows): every occluded epoch but the last two
+    assert np.isfinite(zp[occluded][:-2, :, 5:]).all()
+    assert np.isnan(zp[-2:, :, 5:]).all()
     # [u_R, v_R, u_L, v_L = v_R, u_L - u_R] (Kabir 2025 eq. 16-17) against the noise-free
     # projections: observed RMS 1.06-1.07 sigma_p over the 200 s ahead (seeds 0, 1, 4)
     g = U.geometry(s, t, meas)

@@ -27,8 +27,9 @@ particular kernel makes it exact and cheap, and no library exploits it:
 
   so the product kernel is a sum of cosines at the lattice frequencies ``n/P1 + m/P2``
   (``k = Phi S Phi^T`` with ``R = (2 M1 + 1)(2 M2 + 1)`` real features).  The expansion is
-  truncated where the dropped prior variance is below ``1e-13`` of the total, i.e. far below
-  the noise floor; it is the same kernel to 13 digits, not an approximation of it.
+  truncated where a term's prior variance is below ``1e-13`` of the total (the dropped terms
+  sum to about 1e-12, 6e-12 at the smallest lengthscale allowed), far below the noise floor:
+  the same kernel to 11-12 digits (tests/test_gp.py checks 5e-12), not an approximation of it.
 * Whitening by the noise and rotating the outputs by the eigenvectors of the whitened ``B``
   splits the ICM likelihood into D independent single-output problems that share ``Phi``
   (the Kronecker structure ``B (x) K + Sigma (x) I``).
@@ -404,6 +405,9 @@ def _fft_peaks(t: Array, y: Array, count: int) -> list[tuple[float, float]]:
     16x zero-padded FFT of one mean-removed series; the padding refines each peak's frequency
     beyond the ``1/T`` bin of the plain FFT of Algorithm 1."""
     dt = float(np.median(np.diff(t)))
+    grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+    if len(grid) != len(t) or not np.allclose(grid, t, atol=1e-6 * dt):
+        y = np.interp(grid, t, y)  # missed frames: the FFT needs a uniform grid
     yc = (y - y.mean()) * np.hanning(len(y))
     nfft = 16 * int(2 ** np.ceil(np.log2(len(y))))
     spec = np.abs(np.fft.rfft(yc, n=nfft))
@@ -427,7 +431,8 @@ def fft_period_guess(t: ArrayLike, Y: ArrayLike, peaks: int = 2) -> list[tuple[f
     for j in range(Y.shape[1]):
         for f, mag in _fft_peaks(t, Y[:, j], peaks):
             P = 1.0 / f
-            key = next((k for k in found if abs(k - P) <= 1e-3 * P), None)  # "unique periods"
+            # "unique periods" (step 6): peaks of different outputs within 2% are one period
+            key = next((k for k in found if abs(k - P) <= 0.02 * P), None)
             if key is None:
                 found[P] = mag
             else:
@@ -475,7 +480,10 @@ class GPFit:
         returns the mean and variance of ``dy/dt`` instead (exact derivative of the GP, an
         alternative to the finite differences of Kabir 2025 eq. 27).
         """
-        t = np.asarray(t, float) - self.info["t0"]
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._predict(np.asarray(t, float) - self.info["t0"], derivative)
+
+    def _predict(self, t: Array, derivative: bool) -> tuple[Array, Array]:
         Yn = ((self._Y - self._mean) / self._scale) @ self._rot
         D = Yn.shape[1]
         th = _Theta.unpack(self._theta, D)
