@@ -12,7 +12,6 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from tumblenav import dynamics, metrics
-from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import base, ukf_gp
 from tumblenav.estimators import ukf as U
@@ -28,16 +27,7 @@ DURATION = 500.0  # s, 200 s (3.2 polhode periods) of occlusion
 
 # 10 % of the paper's initial errors (Sec. 3.2), as tests/test_ukf.py: from the paper's own
 # guess the filter is still 22 deg off when the features are lost at 300 s.
-NEAR = {
-    "init_rate_factor": 1.075,
-    "init_feature_offset_m": 0.07,
-    "init_q_offset_wxyz": list(
-        rot.to_scalar_first(rot.exp_quat(0.1 * rot.log_quat([0.1386, 0.1386, 0.1386, 0.9707])))
-    ),
-    "p0_omega_var": 0.1225e-2,
-    "p0_quat_var": 0.04e-2,
-    "p0_feature_var": 2.25e-2,
-}
+from test_ukf import NEAR  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -29,10 +29,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ValidationError
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
@@ -193,6 +194,21 @@ def get(name: str) -> Estimator:
             f"unknown estimator '{name}' (available: {', '.join(sorted(_REGISTRY))})", "--estimator"
         )
     return _REGISTRY[name]()
+
+
+TuningT = TypeVar("TuningT", bound=BaseModel)
+
+
+def parse_tuning(raw: dict[str, Any] | None, model: type[TuningT]) -> TuningT:
+    """Validate ``scenario.estimator.tuning`` against an estimator's pydantic model; an
+    InputError naming the key (``estimator.tuning.KEY: unknown key`` / the reason) otherwise."""
+    try:
+        return model.model_validate(raw or {})
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        raise InputError(f"estimator.tuning.{loc}: {msg}") from None
 
 
 def check_names(names: Sequence[str]) -> None:

@@ -21,11 +21,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends.depth_pose import consistent_start, model_symmetries, pose_fixes
 
 Array = NDArray[np.float64]
@@ -191,13 +192,7 @@ class DepthEKF:
                 f"ekf-depth needs a depth sensor; scenario {scenario.name} has a "
                 f"{scenario.sensor.kind} sensor"
             )
-        try:
-            tun = DepthTuning.model_validate(scenario.estimator.tuning or {})
-        except ValidationError as exc:
-            e = exc.errors()[0]
-            raise InputError(
-                f"estimator.tuning.{'.'.join(map(str, e['loc']))}: {e['msg']}"
-            ) from None
+        tun = base_parse_tuning(scenario.estimator.tuning, DepthTuning)
         from tumblenav.simulation import target_model
 
         model = target_model(scenario)

@@ -37,12 +37,13 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from scipy import stats
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends import stereo_points
 from tumblenav.frontends.inertia import inertia_ratios, principal_frame
 
@@ -104,13 +105,7 @@ class HuTuning(BaseModel):
 
 
 def parse_tuning(raw: dict[str, Any]) -> HuTuning:
-    try:
-        return HuTuning.model_validate(raw or {})
-    except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        raise InputError(f"estimator.tuning.{loc}: {msg}") from None
+    return base_parse_tuning(raw, HuTuning)
 
 
 # --- model pieces (batched over a leading run axis) --------------------------------------

@@ -76,12 +76,13 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from scipy import stats
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends import projections as proj
 
 Array = NDArray[np.float64]
@@ -180,13 +181,7 @@ class KabirTuning(BaseModel):
 
 def parse_tuning(raw: dict[str, Any] | None, model: type[KabirTuning] = KabirTuning) -> KabirTuning:
     """Validate ``estimator.tuning``; InputError naming the key on unknown keys / bad values."""
-    try:
-        return model.model_validate(raw or {})
-    except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        raise InputError(f"estimator.tuning.{loc}: {msg}") from None
+    return base_parse_tuning(raw, model)
 
 
 def paper_tuning(f_T_hz: float) -> dict[str, float]:
