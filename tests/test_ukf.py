@@ -296,3 +296,16 @@ def test_run_batch_equals_single_runs():
             np.testing.assert_allclose(r.errors[k], v, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(r.nees, single.nees, rtol=1e-6)
         assert skipped == h.skipped
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "ukf-mult", "ukf-gp"])
+@pytest.mark.parametrize(
+    ("scenario", "message"),
+    [("yu2019", "needs a stereo rig"), ("chang2021", "inertially fixed chaser")],
+)
+def test_scenarios_the_method_does_not_cover_are_refused_first(estimator, scenario, message):
+    # Kabir 2025 Sec. 2.1 (parallel stereo rig, chaser without orbit): the reason comes before
+    # any tuning key of the other paper's scenario is read
+    sc = load_scenario(scenario)
+    with pytest.raises(InputError, match=message):
+        base.get(estimator).run(sc, None, np.random.default_rng(0))

@@ -275,6 +275,20 @@ class KabirGeometry:
     centres_x: Array
 
 
+def check_scenario(scenario: Any) -> None:
+    """What Kabir 2025's filters need (Sec. 2.1), checked before anything else is read."""
+    if scenario.sensor.kind != "stereo":
+        raise InputError(
+            f"Kabir 2025's UKF needs a stereo rig; scenario {scenario.name} has a "
+            f"{scenario.sensor.kind} sensor"
+        )
+    if scenario.chaser.orbit is not None:
+        raise InputError(
+            "Kabir 2025's UKF assumes an inertially fixed chaser (Sec. 2.1): set chaser.orbit: "
+            f"null (scenario {scenario.name} has an orbit)"
+        )
+
+
 def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
     """The known geometry at times ``t``: the mass centre from the scenario
     (``r0_L_m + t v0_L_m_s``, L = I since the chaser has no orbit), the rig attitude from the
@@ -283,15 +297,7 @@ def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
     from tumblenav import sensors
     from tumblenav.simulation import make_rig
 
-    if scenario.chaser.orbit is not None:
-        raise InputError(
-            "Kabir 2025's UKF assumes an inertially fixed chaser (Sec. 2.1): set chaser.orbit: "
-            f"null (scenario {scenario.name} has an orbit)"
-        )
-    if scenario.sensor.kind != "stereo":
-        raise InputError(
-            f"scenario {scenario.name} has a {scenario.sensor.kind} sensor, not stereo"
-        )
+    check_scenario(scenario)
     t = np.asarray(t, dtype=float)
     tg = scenario.target
     r_L = np.asarray(tg.r0_L_m, float) + np.outer(t, tg.v0_L_m_s)
@@ -924,6 +930,7 @@ class KabirUKF:
         )
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        check_scenario(scenario)
         tun = parse_tuning(scenario.estimator.tuning)
         geom = geometry(scenario, measurements.t, measurements)
         z, R = stereo_measurements(measurements, tun)
@@ -933,6 +940,7 @@ class KabirUKF:
         """Many runs at once (vectorised over runs); one (RunErrors, skipped) per run."""
         from tumblenav.metrics import RunErrors, error_magnitudes
 
+        check_scenario(scenario)
         tun = parse_tuning(scenario.estimator.tuning)
         t = measurements[0].t
         geoms = [geometry(scenario, m.t, m) for m in measurements]

@@ -167,6 +167,7 @@ class KabirUKFGP:
     )
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        ukf.check_scenario(scenario)
         tun = ukf.parse_tuning(scenario.estimator.tuning, model=UKFGPTuning)
         assert isinstance(tun, UKFGPTuning)
         t = np.asarray(measurements.t, float)
