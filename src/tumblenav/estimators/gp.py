@@ -76,6 +76,7 @@ __all__ = [
 
 TRUNCATION = 1e-13  # dropped prior variance, relative to the kernel's total (1)
 WARM_B = True
+ELL_MARGIN = 0.9  # the feature set covers lengthscales down to this fraction of the start
 FLAT1 = 1.0
 ELL0 = (1.0, 2.0)  # initial lengthscales (long, short period); the feature set grows if l shrinks
 
@@ -713,7 +714,7 @@ def _optimise(
     nfev = 0
     res = None
     for _ in range(4):
-        ell_min = np.maximum(0.8 * np.exp(theta[2:4]), ell_floor)
+        ell_min = np.maximum(ELL_MARGIN * np.exp(theta[2:4]), ell_floor)
         theta, res, n = _lbfgs_round(theta, t, Yn, maxiter, free, ell_min, flat_nats)
         nfev += n
         at_floor = np.isclose(theta[2:4], np.log(ell_min), atol=1e-6) & (
