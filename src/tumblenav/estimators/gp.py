@@ -75,9 +75,8 @@ __all__ = [
 ]
 
 TRUNCATION = 1e-13  # dropped prior variance, relative to the kernel's total (1)
-WARM_B = True
 ELL_MARGIN = 0.9  # the feature set covers lengthscales down to this fraction of the start
-FLAT1 = 1.0
+FLAT1 = 1.0  # nats gained over 10 iterations below which stage 1 (B diagonal) stops
 ELL0 = (1.0, 2.0)  # initial lengthscales (long, short period); the feature set grows if l shrinks
 
 
@@ -621,8 +620,9 @@ def _inner_nll(x: Array, eig: _Eigen) -> tuple[float, Array]:
 
 
 def _score_periods(theta0: Array, t: Array, Yn: Array) -> tuple[float, Array]:
-    """Cheap score of a period pair: the likelihood maximised over ``B`` and ``sigma`` only,
-    at the given periods and lengthscales (one eigendecomposition, then O(R D) evaluations)."""
+    """The likelihood maximised over ``B`` and ``sigma`` only, at the given periods and
+    lengthscales (one eigendecomposition, then O(R D) evaluations): a cheap score of a period
+    pair, and the warm start of ``B`` and ``sigma`` for the full optimisation."""
     D = Yn.shape[1]
     th = _Theta.unpack(theta0, D)
     feat = _Features.build(th.ell)
@@ -735,8 +735,7 @@ def _staged(th0: Array, t: Array, Yn: Array, maxiter: int) -> tuple[Array, float
     offdiag = [4 + i for i, (r, c) in enumerate(zip(*np.tril_indices(D), strict=True)) if r != c]
     diag_only[offdiag] = False
     th1 = th0.copy()
-    if WARM_B:
-        _, th1 = _score_periods(th1, t, Yn)
+    _, th1 = _score_periods(th1, t, Yn)  # B and sigma at their optimum for the start periods
     th1[offdiag] = 0.0
     th1, _, n1, _ = _optimise(th1, t, Yn, maxiter=maxiter, free=diag_only, flat_nats=FLAT1)
     theta, nll, n2, res = _optimise(th1, t, Yn, maxiter=maxiter)
