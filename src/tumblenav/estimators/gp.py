@@ -75,7 +75,7 @@ __all__ = [
 ]
 
 TRUNCATION = 1e-13  # dropped prior variance, relative to the kernel's total (1)
-ELL_MARGIN = 0.9  # the feature set covers lengthscales down to this fraction of the start
+ELL_MARGIN = 0.8  # the feature set covers lengthscales down to this fraction of the start
 FLAT1 = 1.0  # nats gained over 10 iterations below which stage 1 (B diagonal) stops
 ELL0 = (1.0, 2.0)  # initial lengthscales (long, short period); the feature set grows if l shrinks
 
