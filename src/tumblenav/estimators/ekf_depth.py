@@ -17,7 +17,7 @@ scatter of the plane fit (first order: centroid ``sigma / sqrt(n)`` per axis; at
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,6 +62,26 @@ class DepthTuning(BaseModel):
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
     plane_threshold_m: float | None = Field(None, gt=0, description="default: 3 x range noise")
     gate_probability: float = Field(0.9999, gt=0, lt=1)
+    inertia_init: Literal["sphere", "scenario"] = Field(
+        "sphere",
+        description="initial inertia ratios: 'sphere' (1, 1, 0, 0, 0: nothing known; give "
+        "P0_sigma_inertia ~0.5 to match) or 'scenario' (the scenario's ratios plus an error drawn "
+        "from P0, the protocol Yu 2019's P0 = 0.1^2 on the ratios implies)",
+    )
+    position_noise_scale: float = Field(
+        6.0,
+        gt=0,
+        description="variance multiplier on each fix's first-order centroid covariance: the "
+        "centroid errors of a ray-cast scan are about 2x that variance across the short side "
+        "and correlated from scan to scan (lag-1 0.5-0.8 at 1 Hz, AR(1) factor (1+r)/(1-r) = 3); "
+        "docs/results/yu2019.md",
+    )
+    attitude_noise_scale: float = Field(
+        2.0,
+        gt=0,
+        description="variance multiplier on each fix's first-order attitude covariance "
+        "(measured up to 1.8x that variance about the long side, uncorrelated in time)",
+    )
     multi_solution_fix: bool = Field(
         True,
         description="resolve each rectangle's symmetric cases against the prediction "
@@ -140,6 +160,20 @@ def _P0(tun: DepthTuning) -> Array:
             np.full(3, tun.P0_sigma_offset_m**2),
         ]
     )
+
+
+def _initial_inertia(scenario: Any, tun: DepthTuning, rng: np.random.Generator) -> Array:
+    """Initial inertia ratios (Yu 2019 eq. 29): a sphere, or the scenario's ratios with an
+    error drawn from P0.  The scenario's T axes are the model's; the filter's frame is one of
+    the model's symmetric frames, which for half turns leaves the diagonal ratios unchanged
+    (and the products of inertia, zero for a principal frame, too)."""
+    if tun.inertia_init == "sphere":
+        return np.array([1.0, 1.0, 0.0, 0.0, 0.0])
+    I = np.asarray(scenario.target.inertia_kg_m2, float)
+    I = np.diag(I) if I.ndim == 1 else I
+    I = I / I[0, 0]
+    true = np.array([I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])
+    return true + tun.P0_sigma_inertia * rng.normal(size=5)
 
 
 def fix_covariance(fx, sigma: float) -> tuple[Array, Array]:
@@ -232,7 +266,7 @@ class DepthEKF:
                 R_SM0, p0 = consistent_start(fixes)
                 x = np.zeros(LAYOUT.nominal_dim)
                 x[0:4] = rot.matrix_to_quat((R_LI[k].T @ R_LS @ R_SM0).T)
-                x[7:12] = [1.0, 1.0, 0.0, 0.0, 0.0]  # unknown: a sphere
+                x[7:12] = _initial_inertia(scenario, tun, rng)
                 x[12:15] = R_LS @ p0
                 P = _P0(tun)
                 out_x[k], out_P[k] = x, P
@@ -241,6 +275,8 @@ class DepthEKF:
                 q_meas = rot.matrix_to_quat((R_LI[k].T @ R_LS @ fx.R_SM).T)  # R_TI = R_MS R_SL R_LI
                 p_ML = R_LS @ fx.p_MinS
                 cov_att, cov_pos = fix_covariance(fx, sigma)
+                cov_att = tun.attitude_noise_scale * cov_att
+                cov_pos = tun.position_noise_scale * cov_pos
                 R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)
                 R_TP = fx.R_MP if fx.R_MP is not None else np.eye(3)
                 y, Hp = measurement(x, R_LI[k])
