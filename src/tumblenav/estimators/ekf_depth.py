@@ -82,6 +82,11 @@ class DepthTuning(BaseModel):
         description="variance multiplier on each fix's first-order attitude covariance "
         "(measured 0.6, 1.7 and 0.02x that variance about the three axes, uncorrelated)",
     )
+    rate_init: Literal["zero", "fixes"] = Field(
+        "fixes",
+        description="initial rate: from the attitudes of the first two scans with a fix "
+        "(finite difference), or zero (with P0_sigma_rate_rad_s covering the true rate)",
+    )
     multi_solution_fix: bool = Field(
         True,
         description="resolve each rectangle's symmetric cases against the prediction "
@@ -278,6 +283,7 @@ class DepthEKF:
         nis_dof = np.zeros(n)
         skipped: dict[str, int] = {"no_rectangle": 0, "gated_out": 0, "ambiguous_start": 0}
         x = P = None
+        start = None  # (q, t) of the first fix while the rate waits for a second one
         syms = model_symmetries(model.rectangles)
         for k in range(n):
             if x is not None and k > 0:
@@ -305,7 +311,20 @@ class DepthEKF:
                 x[12:15] = R_LS @ p0
                 P = _P0(tun)
                 out_x[k], out_P[k] = x, P
+                start = (x[0:4].copy(), t[k]) if tun.rate_init == "fixes" else None
                 continue
+            if start is not None and fixes:
+                # Yu 2019 Sec. 4 starts the rate near the truth; here from the first two fixes:
+                # omega = -(q1 [-] q0) / dt (kinematics of q_TI, rate in T), if the turn is small
+                best = max(fixes, key=lambda f: f.n_points)
+                q1 = rot.matrix_to_quat((R_LI[k].T @ R_LS @ best.R_SM).T)
+                dtheta = rot.boxminus(q1, start[0])
+                if np.linalg.norm(dtheta) < 0.5:
+                    x[4:7] = -dtheta / (t[k] - start[1])
+                    P[3:6, :] = 0.0
+                    P[:, 3:6] = 0.0
+                    P[3:6, 3:6] = tun.P0_sigma_rate_rad_s**2 * np.eye(3)
+                start = None
             for fx in fixes:
                 q_meas = rot.matrix_to_quat((R_LI[k].T @ R_LS @ fx.R_SM).T)  # R_TI = R_MS R_SL R_LI
                 p_ML = R_LS @ fx.p_MinS
