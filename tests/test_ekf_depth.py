@@ -76,7 +76,7 @@ def test_ekf_depth_tracks_the_yu2019_target(tmp_path):
 def test_ekf_depth_translation_and_offset_are_consistent():
     """The covariance of r, v and b must cover their errors.  The centroid errors of a
     ray-cast scan are ~2x the first-order sampling variance and correlated from scan to scan,
-    so the fix covariance is inflated (tuning position_noise_scale = 3); with the first-order
+    so the fix covariance is inflated (tuning position_noise_scale = 4); with the first-order
     covariance alone this run's block NEES/dof is 3.0 (measured), i.e. over-confident along
     the spin axis, where b is only weakly observable (docs/results/yu2019.md)."""
     from tumblenav.campaign.store import run_seed
@@ -93,30 +93,3 @@ def test_ekf_depth_translation_and_offset_are_consistent():
     nees = [dx[k, block] @ np.linalg.solve(hist.P[k][block, block], dx[k, block]) for k in window]
     # 9 dof, 51 correlated epochs of one run: loose bounds, but 3.0 without the inflation
     assert 0.2 < np.mean(nees) / 9 < 1.5
-    # Iyy/Ixx and Izz/Ixx do not enter the dynamics of this spin about z: their sigma must stay
-    # near the prior (0.1); without the significance-shrunk inertia columns Iyy/Ixx fell to 0.080
-    sig = np.sqrt(np.diag(hist.P[-1]))[6:8]
-    assert np.all(sig > 0.09), sig
-
-
-def test_inertia_columns_carry_no_information_from_rate_noise_alone():
-    """rotational_F(w, l, P_wl): about a principal axis, the columns of Iyy, Izz and Ixy are
-    only what the rate's noise makes of them and are shrunk to zero; the products Ixz, Iyz
-    drive a real wobble (w^2) and are kept; a tumble keeps every column."""
-    l = np.array([0.5, 2.0 / 3.0, 0.0, 0.0, 0.0])  # diag(30, 15, 20) / 30, Yu 2019 Sec. 4
-    P = np.diag(np.r_[np.full(3, (3e-4) ** 2), np.full(5, 0.1**2)])
-    spin = np.array([1e-5, -2e-5, np.radians(1.0)])  # transverse part below its sigma
-    F0, F = D.rotational_F(spin, l), D.rotational_F(spin, l, P)
-    np.testing.assert_allclose(F[3:6, 6:9], 0.0)
-    np.testing.assert_allclose(F[3:6, 9:11], F0[3:6, 9:11], rtol=0.1)
-    np.testing.assert_array_equal(
-        np.delete(F, np.s_[6:11], axis=1), np.delete(F0, np.s_[6:11], axis=1)
-    )
-    # a tumble (Hu 2024's 0.1 rad/s about every axis) with the ratios known to 0.01
-    tumble = np.array([0.1, 0.1, 0.1])
-    P_known = np.diag(np.r_[np.full(3, (3e-4) ** 2), np.full(5, 0.01**2)])
-    np.testing.assert_allclose(
-        D.rotational_F(tumble, l, P_known)[3:6, 6:11],
-        D.rotational_F(tumble, l)[3:6, 6:11],
-        rtol=0.05,
-    )
