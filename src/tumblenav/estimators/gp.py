@@ -46,6 +46,8 @@ zero-padded, windowed FFT, and several candidate pairs (Algorithm 1's best ones 
 lattice-equivalent alternatives) are scored by a short optimisation before the full one
 (a global step over the periods), so that a wrong local optimum is not accepted; a fitted
 model whose noise estimate is far above the sensor noise is flagged as badly trained.
+Each start is first sharpened by fitting the two periods alone (:func:`_refine_periods`, a
+ridge harmonic fit within one FFT bin), which halves the evaluations of the full fit.
 """
 
 from __future__ import annotations
