@@ -95,6 +95,15 @@ def inertia_matrix(l: Array) -> Array:
     return np.array([[1.0, l[2], l[3]], [l[2], l[0], l[4]], [l[3], l[4], l[1]]])
 
 
+def physical_inertia(l: Array) -> bool:
+    """True when the ratios of eq. 29 describe a rigid body: a positive definite inertia whose
+    principal moments satisfy the triangle inequality (I_k <= I_i + I_j)."""
+    if not np.all(np.isfinite(l)):
+        return False
+    lam = np.linalg.eigvalsh(inertia_matrix(l))
+    return bool(lam[0] > 0.0 and lam[2] <= lam[0] + lam[1])
+
+
 def euler_full(w: Array, l: Array) -> Array:
     """Yu 2019 eq. 28: ``omega' = I^-1 (-omega x I omega)``."""
     I = inertia_matrix(l)
@@ -242,7 +251,12 @@ class DepthEKF:
         out_P = np.full((n, 20, 20), np.nan)
         nis = np.full(n, np.nan)
         nis_dof = np.zeros(n)
-        skipped: dict[str, int] = {"no_rectangle": 0, "gated_out": 0, "ambiguous_start": 0}
+        skipped: dict[str, int] = {
+            "no_rectangle": 0,
+            "gated_out": 0,
+            "ambiguous_start": 0,
+            "nonphysical_inertia": 0,
+        }
         x = P = None
         syms = model_symmetries(model.rectangles)
         for k in range(n):
@@ -295,9 +309,16 @@ class DepthEKF:
                     skipped["gated_out"] += 1
                     continue
                 K = np.linalg.solve(S, H @ P).T
+                x_new = LAYOUT.boxplus(x, K @ nu)
+                if not physical_inertia(x_new[7:12]):
+                    # an update that makes the inertia impossible (not positive definite, or a
+                    # moment above the sum of the other two) would let the Euler equations
+                    # explode: skip it and count it
+                    skipped["nonphysical_inertia"] += 1
+                    continue
                 A = np.eye(20) - K @ H
                 P = A @ P @ A.T + K @ R @ K.T  # Joseph form
-                x = LAYOUT.boxplus(x, K @ nu)
+                x = x_new
                 nis[k] = (nis[k] if np.isfinite(nis[k]) else 0.0) + d2
                 nis_dof[k] += 6
             if x is not None:
