@@ -309,15 +309,15 @@ class DepthEKF:
                     skipped["gated_out"] += 1
                     continue
                 K = np.linalg.solve(S, H @ P).T
-                x_new = LAYOUT.boxplus(x, K @ nu)
-                if not physical_inertia(x_new[7:12]):
-                    # an update that makes the inertia impossible (not positive definite, or a
-                    # moment above the sum of the other two) would let the Euler equations
-                    # explode: skip it and count it
-                    skipped["nonphysical_inertia"] += 1
-                    continue
                 A = np.eye(20) - K @ H
                 P = A @ P @ A.T + K @ R @ K.T  # Joseph form
+                x_new = LAYOUT.boxplus(x, K @ nu)
+                if not physical_inertia(x_new[7:12]):
+                    # a step that makes the inertia impossible (not positive definite, or a
+                    # moment above the sum of the other two) would let the Euler equations
+                    # explode: keep the ratios where they were, take the rest, and count it
+                    x_new[7:12] = x[7:12]
+                    skipped["nonphysical_inertia"] += 1
                 x = x_new
                 nis[k] = (nis[k] if np.isfinite(nis[k]) else 0.0) + d2
                 nis_dof[k] += 6
