@@ -96,12 +96,11 @@ def inertia_matrix(l: Array) -> Array:
 
 
 def physical_inertia(l: Array) -> bool:
-    """True when the ratios of eq. 29 describe a rigid body: a positive definite inertia whose
-    principal moments satisfy the triangle inequality (I_k <= I_i + I_j)."""
+    """True when the ratios of eq. 29 give a positive definite inertia (all principal moments
+    above 1e-3 of Ixx); with a zero or negative moment the Euler equations explode."""
     if not np.all(np.isfinite(l)):
         return False
-    lam = np.linalg.eigvalsh(inertia_matrix(l))
-    return bool(lam[0] > 0.0 and lam[2] <= lam[0] + lam[1])
+    return bool(np.linalg.eigvalsh(inertia_matrix(l))[0] > 1e-3)
 
 
 def euler_full(w: Array, l: Array) -> Array:
@@ -313,9 +312,9 @@ class DepthEKF:
                 P = A @ P @ A.T + K @ R @ K.T  # Joseph form
                 x_new = LAYOUT.boxplus(x, K @ nu)
                 if not physical_inertia(x_new[7:12]):
-                    # a step that makes the inertia impossible (not positive definite, or a
-                    # moment above the sum of the other two) would let the Euler equations
-                    # explode: keep the ratios where they were, take the rest, and count it
+                    # a step that makes the inertia not positive definite would let the Euler
+                    # equations explode: keep the ratios where they were, take the rest, and
+                    # count it
                     x_new[7:12] = x[7:12]
                     skipped["nonphysical_inertia"] += 1
                 x = x_new
