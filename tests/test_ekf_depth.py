@@ -93,6 +93,10 @@ def test_ekf_depth_translation_and_offset_are_consistent():
     nees = [dx[k, block] @ np.linalg.solve(hist.P[k][block, block], dx[k, block]) for k in window]
     # 9 dof, 51 correlated epochs of one run: loose bounds, but 3.0 without the inflation
     assert 0.2 < np.mean(nees) / 9 < 1.5
+    # Iyy/Ixx and Izz/Ixx do not enter the dynamics of this spin about z: the Schmidt update
+    # leaves their sigma at the prior (0.1); with a plain update Iyy/Ixx fell to 0.080
+    sig = np.sqrt(np.diag(hist.P[-1]))[6:8]
+    assert np.all(sig > 0.095), sig
 
 
 def test_physical_inertia_accepts_rigid_bodies_only():
@@ -124,3 +128,16 @@ def test_without_the_fix_the_filter_jumps_but_never_explodes():
     first = np.flatnonzero(np.all(np.isfinite(hist.x), axis=1))[0]
     assert np.all(np.isfinite(hist.x[first:]))
     assert hist.skipped["nonphysical_inertia"] > 0
+
+
+def test_unexcited_ratios_are_those_a_principal_axis_spin_does_not_see():
+    """About a principal axis only the products Ixz, Iyz drive the dynamics (a wobble, w^2);
+    Iyy, Izz and Ixy enter through the estimate's noisy transverse rate alone and are the
+    ones the Schmidt update leaves alone. A tumble excites all five."""
+    l = np.array([0.5, 2.0 / 3.0, 0.0, 0.0, 0.0])  # diag(30, 15, 20) / 30, Yu 2019 Sec. 4
+    P_w = (3e-4) ** 2 * np.eye(3)
+    spin = np.array([1e-5, -2e-5, np.radians(1.0)])  # transverse part below its sigma
+    np.testing.assert_array_equal(
+        D.unexcited_ratios(spin, l, P_w), [True, True, True, False, False]
+    )
+    assert not D.unexcited_ratios(np.array([0.1, 0.1, 0.1]), l, P_w).any()

@@ -83,6 +83,12 @@ class DepthTuning(BaseModel):
         description="variance multiplier on each fix's first-order attitude covariance "
         "(measured 0.6, 1.7 and 0.02x that variance about the three axes, uncorrelated)",
     )
+    consider_unexcited_ratios: bool = Field(
+        True,
+        description="Schmidt (consider) update for the inertia ratios whose effect on the "
+        "dynamics the rate's own noise could produce (a spin about a principal axis): beyond "
+        "Yu 2019, the EKF otherwise gains spurious information on them",
+    )
     multi_solution_fix: bool = Field(
         True,
         description="resolve each rectangle's symmetric cases against the prediction "
@@ -121,6 +127,31 @@ def rotational_F(w: Array, l: Array) -> Array:
     for j in range(5):
         F[3:6, 6 + j] = Iinv @ (-np.cross(w, _E[j] @ w) - _E[j] @ wdot)
     return F
+
+
+def _inertia_columns(w: Array, l: Array) -> Array:
+    """(3, 5) ``d omega' / d l_j`` of Yu 2019 eq. 28 at rate ``w`` (the columns of
+    :func:`rotational_F` for the ratios)."""
+    return rotational_F(w, l)[3:6, 6:11]
+
+
+def unexcited_ratios(w: Array, l: Array, P_w: Array, k: float = 4.0) -> NDArray[np.bool_]:
+    """Ratios whose effect on the dynamics is not distinguishable from the rate's own noise:
+    ``|c_j|^2 < k tr(J_j P_w J_j^T)`` with ``c_j = d omega' / d l_j`` and
+    ``J_j = d c_j / d omega``.  About a principal axis the columns of Iyy, Izz and Ixy are
+    only what the estimated rate's noise makes of them (the truth's are zero): updating those
+    ratios would be information from nothing."""
+    C = _inertia_columns(w, l)
+    h = 1e-6 * max(float(np.linalg.norm(w)), 1e-6)
+    J = np.stack(
+        [
+            (_inertia_columns(w + h * e, l) - _inertia_columns(w - h * e, l)) / (2 * h)
+            for e in np.eye(3)
+        ],
+        axis=2,
+    )  # (3, 5, 3): the columns are quadratic in omega, so this is exact up to rounding
+    noise = np.einsum("ijk,kl,ijl->j", J, P_w, J)
+    return np.sum(C * C, axis=0) < k * noise
 
 
 def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Array, Array]:
@@ -308,6 +339,11 @@ class DepthEKF:
                     skipped["gated_out"] += 1
                     continue
                 K = np.linalg.solve(S, H @ P).T
+                if tun.consider_unexcited_ratios:
+                    # Schmidt (consider) update for the ratios the motion does not excite: no
+                    # gain, so no information from nothing; their covariance and its coupling to
+                    # the rate stay, and the Joseph form below is exact for any gain
+                    K[6:11][unexcited_ratios(x[4:7], x[7:12], P[3:6, 3:6])] = 0.0
                 A = np.eye(20) - K @ H
                 P = A @ P @ A.T + K @ R @ K.T  # Joseph form
                 x_new = LAYOUT.boxplus(x, K @ nu)
