@@ -135,3 +135,35 @@ def test_pose_fixes_recover_the_model_pose():
         assert not f.ambiguous
     # no points, no fix, and a reason
     assert pose_fixes(np.zeros((0, 3)), m, 0.01, rng) == ([], ["only 0 finite points"])
+
+
+def _rectangle_cloud(rng, a: float, b: float, n: int = 2000, sigma: float = 0.002) -> np.ndarray:
+    """n points uniform on an a x b rectangle 10 m ahead, facing the sensor (normal -y)."""
+    u = rng.uniform(-a / 2, a / 2, n)
+    w = rng.uniform(-b / 2, b / 2, n)
+    return np.stack([u, 10.0 + sigma * rng.normal(size=n), w], axis=1)
+
+
+def test_pose_fixes_skip_what_is_not_a_model_rectangle_and_say_why():
+    """Yu 2019 Sec. 2 bad input: NaN/inf points are dropped; a plane whose sides match no
+    rectangle of the model, and a model rectangle seen only in part, give no fix (never a
+    wrong attitude) and a reason each; the whole face gives its fix."""
+    from tumblenav.frontends.depth_pose import pose_fixes
+
+    m = procedural_satellite()
+    rng = np.random.default_rng(8)
+    bus = next(r for r in m.rectangles if r.name == "bus+y")
+    b, a = sorted(bus.sides_m)
+    whole = _rectangle_cloud(rng, b, a)
+    bad = whole.copy()
+    bad[::50] = np.nan
+    bad[1::50] = np.inf
+    fixes, why = pose_fixes(bad, m, 0.01, rng, sigma_m=0.002)
+    assert [f.rectangle for f in fixes] in (["bus+y"], ["bus-y"]), why  # faces of equal size
+    # a square of another size: no fix, and the reason names the sides it saw
+    fixes, why = pose_fixes(_rectangle_cloud(rng, 0.3, 0.3), m, 0.01, rng, sigma_m=0.002)
+    assert fixes == [] and len(why) == 1 and "no known rectangle" in why[0]
+    # the same bus face with 40% of its long side hidden: no fix
+    part = whole[whole[:, 2] < whole[:, 2].min() + 0.6 * a]
+    fixes, why = pose_fixes(part, m, 0.01, rng, sigma_m=0.002)
+    assert fixes == [] and "seen in part" in why[0]
