@@ -12,7 +12,12 @@ Measurements (eq. 30-32 written in L): every rectangle recognised in a scan
 is parallel to T), and the model origin ``p_ML = r - R_LT b``; the four-fold symmetry of each
 rectangle is resolved against the filter's prediction (eq. 21-25). Their noise is taken from the
 scatter of the plane fit (first order: centroid ``sigma / sqrt(n)`` per axis; attitude
-``sigma / (sqrt(n) * side / sqrt(12))`` per axis).
+``sigma / (sqrt(n) * side / sqrt(12))`` per axis), scaled by ``position_noise_scale`` and
+``attitude_noise_scale`` for the larger, scan-to-scan correlated errors of a real ray grid.
+
+Beyond Yu 2019: the inertia ratios that the motion does not excite (a spin about a principal
+axis) get a Schmidt (consider) update, so the EKF does not learn them from its own rate noise
+(:func:`unexcited_ratios`); docs/results/yu2019.md has the measurements behind both.
 """
 
 from __future__ import annotations
