@@ -156,7 +156,7 @@ def unexcited_ratios(w: Array, l: Array, P_w: Array, k: float = 4.0) -> NDArray[
         axis=2,
     )  # (3, 5, 3): the columns are quadratic in omega, so this is exact up to rounding
     noise = np.einsum("ijk,kl,ijl->j", J, P_w, J)
-    return np.sum(C * C, axis=0) < k * noise
+    return np.sum(C * C, axis=0) <= k * noise
 
 
 def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Array, Array]:
