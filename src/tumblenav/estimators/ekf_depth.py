@@ -63,15 +63,20 @@ class DepthTuning(BaseModel):
     P0_sigma_offset_m: float = Field(0.1, gt=0)
     P0_sigma_attitude_rad: float = Field(0.1, gt=0)
     P0_sigma_rate_rad_s: float = Field(0.01, gt=0)
-    P0_sigma_inertia: float = Field(0.1, gt=0)
+    P0_sigma_inertia: float | None = Field(
+        None,
+        gt=0,
+        description="default: 0.1 (Yu 2019) with inertia_init 'scenario', 0.5 with 'sphere' "
+        "(a sphere is 0.3-0.5 off a typical satellite's ratios)",
+    )
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
     plane_threshold_m: float | None = Field(None, gt=0, description="default: 3 x range noise")
     gate_probability: float = Field(0.9999, gt=0, lt=1)
     inertia_init: Literal["sphere", "scenario"] = Field(
         "sphere",
-        description="initial inertia ratios: 'sphere' (1, 1, 0, 0, 0: nothing known; give "
-        "P0_sigma_inertia ~0.5 to match) or 'scenario' (the scenario's ratios plus an error drawn "
-        "from P0, the protocol Yu 2019's P0 = 0.1^2 on the ratios implies)",
+        description="initial inertia ratios: 'sphere' (1, 1, 0, 0, 0: nothing known) or "
+        "'scenario' (the scenario's ratios plus an error drawn from P0, the protocol Yu 2019's "
+        "P0 = 0.1^2 on the ratios implies)",
     )
     position_noise_scale: float = Field(
         4.0,
@@ -199,7 +204,7 @@ def _P0(tun: DepthTuning) -> Array:
         np.r_[
             np.full(3, tun.P0_sigma_attitude_rad**2),
             np.full(3, tun.P0_sigma_rate_rad_s**2),
-            np.full(5, tun.P0_sigma_inertia**2),
+            np.full(5, _sigma_inertia(tun) ** 2),
             np.full(3, tun.P0_sigma_position_m**2),
             np.full(3, tun.P0_sigma_velocity_m_s**2),
             np.full(3, tun.P0_sigma_offset_m**2),
@@ -218,7 +223,14 @@ def _initial_inertia(scenario: Any, tun: DepthTuning, rng: np.random.Generator) 
     I = np.diag(I) if I.ndim == 1 else I
     I = I / I[0, 0]
     true = np.array([I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])
-    return true + tun.P0_sigma_inertia * rng.normal(size=5)
+    return true + _sigma_inertia(tun) * rng.normal(size=5)
+
+
+def _sigma_inertia(tun: DepthTuning) -> float:
+    """P0 sigma of the ratios: as given, else one that matches the initial guess."""
+    if tun.P0_sigma_inertia is not None:
+        return tun.P0_sigma_inertia
+    return 0.1 if tun.inertia_init == "scenario" else 0.5
 
 
 def fix_covariance(fx, sigma: float) -> tuple[Array, Array]:
