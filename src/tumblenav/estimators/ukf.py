@@ -166,7 +166,13 @@ class KabirTuning(BaseModel):
         None, gt=0, description="projection noise; default: the sensor's noise_px / focal_px"
     )
     sigma_d_rad: float | None = Field(None, gt=0, description="disparity; default: sigma_p")
-    sigma_flow_rad_s: float = Field(1e-5, gt=0, description="optical flow noise sigma_o")
+    sigma_flow_rad_s: float = Field(
+        1e-5,
+        gt=0,
+        description="optical flow noise sigma_o; note that eq. 27's truncation error at 1 Hz "
+        "is ~3e-3 to 6e-3 rad/s at Kabir's tumbling rates, far above the paper's sigma_o "
+        "(docs/results/kabir2025.md)",
+    )
     flow_edges: Literal["drop", "paper"] = Field(
         "drop",
         description="'drop': no flow where Kabir 2025 eq. 27 falls back to its first- and "
