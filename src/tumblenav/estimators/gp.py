@@ -650,6 +650,20 @@ def _score_periods(theta0: Array, t: Array, Yn: Array) -> tuple[float, Array]:
     return float(r.fun), np.concatenate([theta0[:4], r.x])
 
 
+def _curvature_scale(grad, x0: Array, steps: Array) -> Array:
+    """Diagonal preconditioning for L-BFGS-B: ``1 / sqrt(|curvature|)`` of every coordinate,
+    from forward differences of the gradient ``grad(x)`` with the given steps.  The likelihood
+    is orders of magnitude stiffer in the periods (a phase error grows over the whole span)
+    than in the other log-parameters."""
+    g0 = grad(x0)
+    curv = np.empty(len(x0))
+    for k, h in enumerate(steps):
+        e = np.zeros(len(x0))
+        e[k] = h
+        curv[k] = (grad(x0 + e)[k] - g0[k]) / h
+    return 1.0 / np.sqrt(np.maximum(np.abs(curv), 1e-6))
+
+
 def _refine_periods(t: Array, Yn: Array, periods: tuple[float, float]) -> tuple[float, float]:
     """Sharpen a period pair from the FFT before the full optimisation.
 
@@ -675,9 +689,7 @@ def _refine_periods(t: Array, Yn: Array, periods: tuple[float, float]) -> tuple[
         f, g = nll_and_grad(th, t, Yn, feat)
         return f, g[:2]
 
-    _, g0 = fg(x0)
-    curv = np.array([(fg(x0 + 1e-7 * e)[1][k] - g0[k]) / 1e-7 for k, e in enumerate(np.eye(2))])
-    scale = 1.0 / np.sqrt(np.maximum(np.abs(curv), 1e-6))
+    scale = _curvature_scale(lambda x: fg(x)[1], x0, np.full(2, 1e-7))
     # A refinement, not a search: each frequency stays within one FFT bin (1 / span) of the
     # start (on short spans the fit could otherwise wander onto another basis of the lattice).
     lo, hi = _bounds(t, D, np.array(ELL0))[0]
@@ -722,17 +734,8 @@ def _lbfgs_round(
     x0 = theta[free]
     nfev = 0
     if scale is None:
-        # Diagonal preconditioning: the likelihood is orders of magnitude stiffer in the
-        # periods (a phase error grows over the whole span) than in the lengthscales; scale
-        # every log-parameter by 1/sqrt of its curvature (forward differences of the gradient).
-        _, g0 = nll_and_grad(theta, t, Yn, feat)
-        g0 = g0[free]
-        curv = np.empty(len(x0))
-        for k, i in enumerate(np.nonzero(free)[0]):
-            e = np.zeros(len(x0))
-            e[k] = 1e-4 if i >= 2 else 1e-7
-            curv[k] = (nll_and_grad(full(x0 + e), t, Yn, feat)[1][i] - g0[k]) / e[k]
-        scale = 1.0 / np.sqrt(np.maximum(np.abs(curv), 1e-6))
+        steps = np.where(np.nonzero(free)[0] >= 2, 1e-4, 1e-7)  # periods are the stiff ones
+        scale = _curvature_scale(lambda x: nll_and_grad(full(x), t, Yn, feat)[1][free], x0, steps)
         nfev += len(x0) + 1
 
     def fun(z: Array) -> tuple[float, Array]:
