@@ -189,7 +189,8 @@ def main() -> None:
         ours_pred[:, i, :] = m.predict(t)[0]
         r = window_rmses(t, ours_pred[:, i], wt[:, i])
         print(
-            f"ours feature {i}: {m.train_time_s:.2f} s in its worker, ok={m.ok}, periods "
+            f"ours feature {i}: {m.train_time_s:.2f} s in its worker, "
+            f"{m.info['nfev']} evaluations, ok={m.ok}, periods "
             f"{m.periods_s[0]:.2f}/{m.periods_s[1]:.2f} s, rmse {r[0]:.3e} rad "
             f"(2000 s: {r[1]:.3e})"
         )
