@@ -523,3 +523,154 @@ def test_principal_frame_degenerate_first_component_and_stacks():
     assert np.allclose(principal_frame(stack)[1], np.eye(3))
     with pytest.raises(ValueError):
         principal_frame(np.full((3, 3), np.nan))
+
+
+# ------------------------------------------- compiled loops of the stereo-points front end
+
+
+def _hu_measurements(n_runs, seed, **updates):
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.scenario import load_scenario
+    from tumblenav.simulation import simulate
+
+    s = load_scenario("hu2024").with_updates(
+        duration_s=40.0, steady_state_window_s=[30.0, 40.0], **updates
+    )
+    return [simulate(s, run_seed(seed, k))[1] for k in range(n_runs)]
+
+
+def test_compiled_triangulation_equals_numpy():
+    """Points, covariances (in C and L), masks and skip counts of the compiled parallel-rig
+    loop equal :func:`stereo_points.triangulate` and its rotation into L, including features
+    seen in one camera only and non-positive disparities."""
+    from tumblenav.frontends import _points_kernel, stereo_points
+
+    meas = _hu_measurements(2, 3)
+    uv = np.stack([m.uv for m in meas]).astype(float)
+    obs = np.stack([m.observed for m in meas])
+    uv[0, 5, 1, 2, 0] = uv[0, 5, 0, 2, 0] + 1.0  # negative disparity
+    uv[1, 7, 1, 0, 0] = uv[1, 7, 0, 0, 0]  # zero disparity
+    obs[0, 9, 1, 3] = False  # left camera only
+    uv[1, 11, 0, 4, 1] = np.nan  # NaN pixel
+    for k, m in enumerate(meas):
+        m.uv[...] = uv[k]
+        m.observed[...] = obs[k]
+    p_C, cov_C, usable, skipped = stereo_points.triangulate(meas)
+    R_LC = np.ascontiguousarray(
+        np.swapaxes(rot.quat_to_matrix(np.stack([m.q_CL for m in meas])), -1, -2)
+    )
+    rig = meas[0].rig
+    out = _points_kernel.triangulate_parallel_rotated(
+        uv, obs, rig.left.focal_px, rig.baseline_m, *rig.left.principal_point_px,
+        meas[0].noise_px, R_LC,
+    )  # fmt: skip
+    pc, cc, pl, cl, uc, one_cam, bad = out
+    assert np.array_equal(uc, usable) and (~usable).sum() >= 4
+    assert np.array_equal(one_cam, skipped["one_camera_only"])
+    assert np.array_equal(bad, skipped["bad_triangulation"]) and bad.sum() >= 3
+    assert np.allclose(pc[usable], p_C[usable], rtol=1e-14, atol=0)
+    assert np.allclose(cc[usable], cov_C[usable], rtol=1e-12, atol=0)
+    assert np.allclose(pl[usable], (R_LC[:, :, None] @ p_C[..., None])[..., 0][usable], atol=1e-12)
+    cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
+    assert np.allclose(cl[usable], cov_L[usable], rtol=1e-10, atol=1e-20)
+    assert np.all(np.isnan(pl[~usable]))
+
+
+def _rates_reference(q, valid, h, dt):
+    """The numpy version the compiled rate fit replaced (symmetric slope of log q(k+j) q(k)^*)."""
+    B, n = valid.shape
+    num = np.zeros((B, n, 3))
+    good = valid.copy()
+    for j in range(1, h + 1):
+        for s in (+1, -1):
+            shifted = np.roll(q, -s * j, axis=1)
+            vshift = np.roll(valid, -s * j, axis=1)
+            if s > 0:
+                vshift[:, n - j :] = False
+            else:
+                vshift[:, :j] = False
+            num += s * j * rot.log_quat(rot.quat_multiply(shifted, rot.quat_conjugate(q)))
+            good &= vshift
+    omega = -num / (dt * 2.0 * sum(j * j for j in range(1, h + 1)))
+    return np.where(good[..., None], omega, np.nan)
+
+
+@given(seed=st.integers(0, 2**32 - 1), h=st.integers(1, 6))
+def test_compiled_rate_fit_equals_numpy(seed, h):
+    from tumblenav.frontends import _points_kernel
+
+    rng = np.random.default_rng(seed)
+    B, n = 2, 40
+    w = rng.normal(scale=0.3, size=(B, 1, 3))
+    t = np.arange(n) * 0.1
+    q = rot.quat_multiply(
+        rot.exp_quat(-w * t[None, :, None]), rot.quat_normalize(rng.normal(size=(B, 1, 4)))
+    )
+    q = rot.quat_normalize(rot.boxplus(q, rng.normal(scale=1e-3, size=(B, n, 3))))
+    valid = rng.random((B, n)) > 0.1
+    q = np.where(valid[..., None], q, rot.IDENTITY)
+    om = _points_kernel.rate_fit(q, valid, h, 0.1)
+    ref = _rates_reference(q, valid, h, 0.1)
+    assert np.array_equal(np.isfinite(om), np.isfinite(ref))
+    assert np.allclose(om[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-12, atol=1e-14)
+
+
+@given(seed=st.integers(0, 2**32 - 1), delay=st.integers(0, 7), every=st.integers(1, 6))
+def test_compiled_normal_equations_equal_cumulative_sums(seed, delay, every):
+    from tumblenav.frontends import _points_kernel
+
+    rng = np.random.default_rng(seed)
+    B, n = 2, 30
+    a, b = rng.normal(size=(B, n, 3, 8)), rng.normal(size=(B, n, 3))
+    ok = rng.random((B, n)) > 0.2
+    w = np.where(ok, rng.random((B, n)), 0.0)
+    sel = np.unique((np.arange(n) // every) * every)
+    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
+    aT = np.swapaxes(a, -1, -2)
+    sums = [
+        np.cumsum(w[..., None, None] * (aT @ a), axis=1),
+        np.cumsum(w[..., None] * (aT @ b[..., None])[..., 0], axis=1),
+        np.cumsum(w * np.sum(b * b, axis=-1), axis=1),
+        np.cumsum(ok, axis=1),
+    ]
+    for got, full in zip((N, r, bb, cnt), sums, strict=True):
+        idx = sel - delay
+        ref = np.where(
+            (idx >= 0).reshape((1, -1) + (1,) * (full.ndim - 2)),
+            full[:, np.maximum(idx, 0)],
+            0,
+        )
+        assert np.allclose(got, ref, rtol=1e-12, atol=1e-12)
+
+
+@given(seed=st.integers(0, 2**32 - 1))
+def test_compiled_matrix_to_quat_equals_rotations(seed):
+    """Shepperd conversion, including rotations near a half turn about each axis."""
+    from tumblenav.frontends import _points_kernel
+
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(64, random_state=seed).as_matrix()
+    axes = rng.normal(size=(6, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    half = rot.exp_map(axes * (np.pi - rng.uniform(0, 1e-3, size=(6, 1))))
+    R = np.concatenate([R, half, np.eye(3)[None]])
+    q = _points_kernel.matrix_to_quat(np.ascontiguousarray(R))
+    ref = rot.matrix_to_quat(R)
+    assert np.all(q[:, 3] >= 0)
+    assert np.allclose(np.abs(np.sum(q * ref, axis=1)), 1.0, atol=1e-12)
+    assert np.allclose(rot.quat_to_matrix(q), R, atol=1e-12)
+
+
+def test_front_end_batch_is_per_run():
+    """A run's front-end result does not depend on the batch it is processed in (the
+    compiled loops run per run; the numpy parts are vectorised)."""
+    from tumblenav.frontends import stereo_points
+
+    meas = _hu_measurements(3, 5, **{"sensor.noise.angular_rad": 2e-5})
+    s = stereo_points.FrontEndSettings(min_ls_epochs=50)
+    batch = stereo_points.process(meas, s)
+    alone = stereo_points.process(meas[1:2], s)
+    for name in ("p_L", "cov_L", "R_GI", "omega_G", "q_TI", "cov_TI"):
+        a, b = getattr(batch, name)[1], getattr(alone, name)[0]
+        assert np.array_equal(np.isfinite(a), np.isfinite(b)), name
+        assert np.allclose(a[np.isfinite(b)], b[np.isfinite(b)], rtol=1e-10, atol=1e-14), name

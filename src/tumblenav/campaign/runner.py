@@ -65,6 +65,28 @@ def evaluate_runs(
     return out
 
 
+def _store_results(store: CampaignStore, base_seed: int, results) -> list[int]:
+    """Write each run of ``results`` (from :func:`evaluate_runs`) to the store at once;
+    returns their indices."""
+    for k, res, error in results:
+        if res is None:
+            store.save_failure(k, base_seed, error or "unknown error")
+        else:
+            r, skipped = res
+            store.save_run(k, base_seed, r, {f"skipped_{n}": c for n, c in skipped.items()})
+    return [k for k, _, _ in results]
+
+
+def evaluate_and_store(
+    scenario: Scenario, estimator_name: str, base_seed: int, ks: Sequence[int], root: str
+) -> list[int]:
+    """:func:`evaluate_runs`, then store the runs from where they were computed (a local
+    worker process), so that compressing and writing them is spread over the workers instead
+    of queueing in the parent; returns the stored run indices."""
+    results = evaluate_runs(scenario, estimator_name, base_seed, ks)
+    return _store_results(CampaignStore(Path(root)), base_seed, results)
+
+
 def _short(exc: BaseException) -> str:
     tb = traceback.extract_tb(exc.__traceback__)
     where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
@@ -157,30 +179,26 @@ def _execute(
     with Progress(*columns, console=con, transient=False) as prog:
         task = prog.add_task(f"{scenario.name} / {estimator_name}", total=total, completed=already)
 
-        def record(results) -> None:
-            for k, res, error in results:
-                if res is None:
-                    store.save_failure(k, base_seed, error or "unknown error")
-                else:
-                    r, skipped = res
-                    store.save_run(k, base_seed, r, {f"skipped_{n}": c for n, c in skipped.items()})
-                prog.advance(task)
+        def record(results) -> None:  # results computed elsewhere (Dask): store them here
+            prog.advance(task, len(_store_results(store, base_seed, results)))
 
+        root = str(store.root)
         if scheduler:
             _execute_dask(scenario, estimator_name, base_seed, chunks, scheduler, record)
         elif workers == 1 or len(chunks) == 1:
             for ks in chunks:
-                record(evaluate_runs(scenario, estimator_name, base_seed, ks))
+                done = evaluate_and_store(scenario, estimator_name, base_seed, ks, root)
+                prog.advance(task, len(done))
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 pending = {
-                    pool.submit(evaluate_runs, scenario, estimator_name, base_seed, ks)
+                    pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
                     for ks in chunks
                 }
                 while pending:
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:
-                        record(f.result())
+                        prog.advance(task, len(f.result()))
 
 
 def _execute_dask(

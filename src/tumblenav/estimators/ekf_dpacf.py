@@ -348,10 +348,17 @@ def run_filter(
     truths: list | None = None,
     keep_history: bool = True,
     nees_every: int = 1,
+    engine: Literal["auto", "numpy", "compiled"] | None = None,
 ) -> dict[str, Any]:
     """Run the EKF on B runs at once. Returns histories (if ``keep_history``), NIS, and with
     ``truths`` (the simulated truth of each run) the error histories and NEES against the
-    truth expressed in this filter's principal frame (:func:`canonical_frame`)."""
+    truth expressed in this filter's principal frame (:func:`canonical_frame`).
+
+    ``engine``: the compiled per-run loop (:mod:`tumblenav.estimators._hu_kernel`) or the
+    batched numpy loop below; both give the same result (tests). ``auto`` takes the compiled
+    one wherever it covers the tuning (eq. 31 attitude measurement, no innovation gate).
+    ``None``: the module's ``ENGINE`` (benchmarks set it to time the numpy loop)."""
+    engine = engine or ENGINE
     tun = parse_tuning(scenario.estimator.tuning)
     if tun.first_estimates_jacobian is None:
         tun = tun.model_copy(update={"first_estimates_jacobian": use_dpacf})
@@ -366,6 +373,9 @@ def run_filter(
         else scenario.process_noise.rotational_rad2_s4
     )
     n_orbit = scenario.chaser.orbit.mean_motion_rad_s if scenario.chaser.orbit else 0.0
+    covered = tun.dpacf_measurement == "attitude" and tun.gate_probability is None
+    if engine == "compiled" and not covered:
+        raise ValueError("the compiled engine covers dpacf_measurement 'attitude' without a gate")
     fe = frontend(meas_list, tun)
     B, n, N = fe.usable.shape
     lay = layout(N)
@@ -401,6 +411,46 @@ def run_filter(
                 for b, tr in enumerate(truths)
             ]
         )
+    uniform = bool(np.allclose(np.diff(t), dt_nom, rtol=1e-9, atol=0))
+    compiled_ok = covered and uniform
+    if engine == "compiled" and not uniform:
+        raise ValueError("the compiled engine needs a uniform time grid")
+    if engine != "numpy" and compiled_ok:
+        from tumblenav.estimators import _hu_kernel
+
+        diverged = np.zeros(B, dtype=np.bool_)
+        R0 = np.nan_to_num(fe.cov_TI + (att_inflation - 1.0) * fe.cov_frame)
+        Pht, Qt = _translation_discrete(n_orbit, s_t2, dt_nom)  # uniform grid: one dt
+
+        def empty(*shape):
+            return np.zeros((B, 0) + shape)
+
+        _hu_kernel.run_filter_kernel(
+            t, fe.p_L, np.nan_to_num(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
+            init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
+            tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, s_r2, Pht, Qt,
+            _FLIPS, rot.matrix_to_quat(_FLIPS), xt if xt is not None else empty(1), nees_every,
+            _neutral_state(lay), out_x if keep_history else empty(1),
+            out_P if keep_history else empty(1, 1), nis, nis_dof,
+            err if err is not None else empty(1), nees if nees is not None else empty(),
+            diverged, flips,
+        )  # fmt: skip
+        return {
+            "t": t,
+            "x": out_x,
+            "P": out_P,
+            "nis": nis,
+            "nis_dof": nis_dof,
+            "nees": nees,
+            "err": err,
+            "layout": lay,
+            "frontend": fe,
+            "k0": init.k0,
+            "rejected": rejected,
+            "diverged": diverged,
+            "x_true": xt,
+            "frame_flips": flips,
+        }
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
     for k in range(n):
@@ -521,7 +571,7 @@ def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
     dist = np.linalg.norm(D[:, None] - _FLIPS[None], axis=(-1, -2))  # (B, 3)
     which = np.argmin(dist, axis=1)
     near = ok & (dist[np.arange(len(D)), which] < 1.0)  # within ~40 deg of a half turn
-    votes = np.where(near, votes + 1, 0)
+    votes = np.where(near, votes + 1, np.where(ok, 0, votes))  # no measurement: streak kept
     go = votes >= need
     if go.any():
         F = _FLIPS[which[go]]
@@ -856,6 +906,7 @@ def truth_in_frame(truth: Any, R_TcT: Array, lay: StateLayout) -> Array:
     return x
 
 
+ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)
 CONSTRAIN_EVERY = 10  # epochs between projections onto the inertia constraint
 NEES_EVERY = 10  # campaigns sample the NEES every 10 epochs (1 Hz for hu2024)
 

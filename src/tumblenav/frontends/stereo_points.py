@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tumblenav import rotations as rot
+from tumblenav.frontends import _points_kernel
 from tumblenav.frontends.inertia import inertia_design, principal_frame
 from tumblenav.frontends.photogrammetric import g_frame_from_points, triplet_score
 from tumblenav.frontends.triangulation import (
@@ -134,15 +135,14 @@ def weighted_kabsch(
     the information-form covariance of the G attitude error (in G, rad^2), and a validity
     mask (>= 3 non-collinear points).
     """
-    W = w[..., None]
-    sw = np.sum(w, axis=-1)
-    ok = (np.sum(w > 0, axis=-1) >= 3) & (sw > 0)
-    sw_safe = np.where(sw > 0, sw, 1.0)
-    pc = np.sum(W * np.nan_to_num(p_C), axis=1) / sw_safe[:, None]
-    gc = np.sum(W * np.nan_to_num(g_G), axis=1) / sw_safe[:, None]
-    a = np.where(W > 0, np.nan_to_num(p_C) - pc[:, None], 0.0)
-    b = np.where(W > 0, np.nan_to_num(g_G) - gc[:, None], 0.0)
-    Hm = np.swapaxes(w[..., None] * b, -1, -2) @ a  # sum w g p^T
+    # sums over the points in a compiled loop (the numpy version of these few lines made
+    # full-size temporaries of every (run, epoch, feature) vector; same formulas below)
+    Hm, pc, gc, info, cnt, sw = _points_kernel.kabsch_moments(
+        np.ascontiguousarray(p_C, dtype=float),
+        np.ascontiguousarray(g_G, dtype=float),
+        np.ascontiguousarray(w, dtype=float),
+    )  # Hm = sum w g p^T of the centred points, info = sum w (|a|^2 I - a a^T), a = p - pc
+    ok = (cnt >= 3) & (sw > 0)
     U, S, Vt = np.linalg.svd(Hm)
     d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
     D = np.zeros_like(Hm)
@@ -152,12 +152,8 @@ def weighted_kabsch(
     R_CG = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
     ok &= S[:, 1] > 1e-9 * np.maximum(S[:, 0], 1e-300)  # not collinear
     o = pc - np.einsum("bij,bj->bi", R_CG, gc)
-    # Information of a small rotation of the lever arms a_i (C frame): sum w [a x]^T [a x].
-    # [a x]^T [a x] = |a|^2 I - a a^T
-    wa = w[..., None] * a
-    info = np.sum(w * np.sum(a * a, axis=-1), axis=1)[:, None, None] * np.eye(3) - (
-        np.swapaxes(wa, -1, -2) @ a
-    )
+    # info: information of a small rotation of the lever arms a_i (C frame),
+    # sum w [a x]^T [a x] with [a x]^T [a x] = |a|^2 I - a a^T
     R_GC = np.swapaxes(R_CG, -1, -2)
     eye = np.eye(3)
     info = np.where(ok[:, None, None], info, eye)
@@ -241,28 +237,23 @@ def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, A
     ``log(R_GI(k+j) R_GI(k)^T) = -j dt omega`` over ``j = -h..h`` (Hu 2024 eq. 15-16 uses a
     numerical derivative; the symmetric fit cancels the second-order term and averages the
     attitude noise). Returns omega (B,n,3) and its per-axis variance (B,n)."""
-    B, n = R_GI.shape[:2]
-    q = rot.matrix_to_quat(_finite_or_identity(R_GI))
+    q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
-    num = np.zeros((B, n, 3))
-    good = valid.copy()
-    for j in range(1, h + 1):
-        for s in (+1, -1):
-            shifted = np.roll(q, -s * j, axis=1)
-            vshift = np.roll(valid, -s * j, axis=1)
-            if s > 0:
-                vshift[:, n - j :] = False
-            else:
-                vshift[:, :j] = False
-            phi = rot.log_quat(rot.quat_multiply(shifted, rot.quat_conjugate(q)))
-            num += s * j * phi
-            good &= vshift
+    # omega = -sum_j j phi_j / (dt sum_j j^2), phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h,
+    # NaN unless all 2h+1 epochs have a G attitude (compiled loop)
+    omega = _points_kernel.rate_fit(q, valid, h, dt)
+    good = np.all(np.isfinite(omega), axis=-1)
     sjj = 2.0 * sum(j * j for j in range(1, h + 1))
-    omega = -num / (dt * sjj)
     var_psi = np.trace(np.nan_to_num(cov_G), axis1=-2, axis2=-1) / 3.0
     var = 2.0 * var_psi / (dt**2 * sjj)
-    omega = np.where(good[..., None], omega, np.nan)
     return omega, np.where(good, var, np.nan)
+
+
+def _quats(R: Array) -> Array:
+    """Quaternions of a stack of rotation matrices (products of rotations, so orthogonal):
+    compiled Shepperd conversion, the same as :func:`tumblenav.rotations.matrix_to_quat`."""
+    R = np.ascontiguousarray(R, dtype=float)
+    return _points_kernel.matrix_to_quat(R.reshape(-1, 3, 3)).reshape(R.shape[:-2] + (4,))
 
 
 def _finite_or_identity(R: Array) -> Array:
@@ -305,23 +296,14 @@ def identify_and_dpacf(
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
     a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
     w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
-    aT = np.swapaxes(a, -1, -2)
-    N = np.cumsum(w[..., None, None] * (aT @ a), axis=1)
-    r = np.cumsum(w[..., None] * (aT @ b[..., None])[..., 0], axis=1)
-    bb = np.cumsum(w * np.sum(b * b, axis=-1), axis=1)
-    cnt = np.cumsum(ok, axis=1)
-    if delay > 0:
-        # causality: the rate at epoch j uses attitudes up to j + h, so epoch k may only use
-        # the least-squares sums up to k - h
-        N, r, bb, cnt = (
-            np.concatenate([np.zeros_like(x[:, :delay]), x[:, :-delay]], axis=1)
-            for x in (N, r, bb, cnt)
-        )
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
     held = (np.arange(n) // s.ls_every) * s.ls_every
     sel = np.unique(held)
-    N, r, bb, cnt = N[:, sel], r[:, sel], bb[:, sel], cnt[:, sel]
+    # Sums of w a^T a, w a^T b, w |b|^2 and the count of epochs, up to epoch k - delay at
+    # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
+    # k may only use the least-squares sums up to k - h (compiled loop).
+    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
     d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
     Ns = N / (d[..., :, None] * d[..., None, :])
     ev = np.linalg.eigvalsh(Ns)
@@ -366,7 +348,7 @@ def identify_and_dpacf(
     R_TG = np.swapaxes(R_GT, -1, -2)
     R_TI = R_TG @ _finite_or_identity(R_GI)
     cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
-    q_TI = rot.matrix_to_quat(R_TI)
+    q_TI = _quats(R_TI)
     meas_ok = valid & np.all(np.isfinite(R_GI), axis=(-1, -2))
     q_TI = np.where(meas_ok[..., None], q_TI, np.nan)
     cov_TI = np.where(meas_ok[..., None, None], cov_TI, np.nan)
@@ -381,12 +363,27 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     s = settings or FrontEndSettings()
     t = meas_list[0].t
     dt = float(np.median(np.diff(t)))
-    p_C, cov_C, usable, skipped = triangulate(meas_list)
     R_CL = rot.quat_to_matrix(np.stack([m.q_CL for m in meas_list]))  # (B,n,3,3)
     R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
-    R_LC = np.swapaxes(R_CL, -1, -2)
-    p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
-    cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
+    R_LC = np.ascontiguousarray(np.swapaxes(R_CL, -1, -2))
+    rig = meas_list[0].rig
+    if rig.kind == "parallel":  # compiled: the same as triangulate() and the rotation below
+        L = rig.left
+        p_C, cov_C, p_L, cov_L, usable, one_cam, bad = _points_kernel.triangulate_parallel_rotated(
+            np.stack([m.uv for m in meas_list]).astype(float),
+            np.stack([m.observed for m in meas_list]).astype(np.bool_),
+            float(L.focal_px),
+            float(rig.baseline_m),
+            float(L.principal_point_px[0]),
+            float(L.principal_point_px[1]),
+            float(meas_list[0].noise_px),
+            R_LC,
+        )
+        skipped = {"one_camera_only": one_cam, "bad_triangulation": bad}
+    else:
+        p_C, cov_C, usable, skipped = triangulate(meas_list)
+        p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
+        cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
     R_GC, cov_G, template, known, known_at = photogrammetric_frames(p_C, cov_C, usable)
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)

@@ -1,0 +1,630 @@
+"""Compiled (numba) per-run loop of the Hu 2024 EKF: the same filter as the numpy path of
+:func:`tumblenav.estimators.ekf_dpacf.run_filter`, step for step.
+
+Why by hand: the filter's cost is thousands of tiny (3x3, 3x33, 9x9) products per epoch.
+Batched numpy over runs pays a temporary array and a Python dispatch for each of them, which
+profiling showed to be most of the time (``docs/results/hu2024.md``, Speed); no library offers
+an error-state EKF with this structure. The kernel writes the loops out once per run, exploits
+the structure of H (attitude, position and one feature block per measurement) and of Phi
+(block diagonal), and keeps everything in registers-sized loops.
+
+Covered: ``dpacf_measurement: attitude`` without the innovation gate (the defaults), for
+ekf-dpacf and ekf-baseline. The other options run on the numpy path. ``tests/test_ekf_dpacf.py``
+checks that both paths give the same states, covariances, NIS and NEES.
+
+State layout (fixed by :func:`tumblenav.estimators.ekf_dpacf.layout`): nominal
+``[q(4), w(3), p(3), r(3), v(3), f(3N)]``, error ``[dtheta(3), dw(3), dp(3), dr(3), dv(3),
+df(3N)]``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# Floating-point licence for the compiler: reassociation and fused multiply-add let it
+# vectorise the sums; NaN and inf semantics are kept (the divergence checks rely on them).
+_FM = {"reassoc", "contract", "arcp", "nsz"}
+# error-state offsets
+_SA, _SW, _SP, _SR, _SV, _SF = 0, 3, 6, 9, 12, 15
+# nominal-state offsets
+_NQ, _NW, _NP, _NR, _NV, _NF = 0, 4, 7, 10, 13, 16
+
+
+@njit(cache=True, inline="always", fastmath=_FM)
+def _qmul(a, b, out):
+    """Hamilton product a (x) b of [x, y, z, w] quaternions (``rotations.quat_multiply``)."""
+    ax, ay, az, aw = a[0], a[1], a[2], a[3]
+    bx, by, bz, bw = b[0], b[1], b[2], b[3]
+    out[0] = aw * bx + bw * ax + (ay * bz - az * by)
+    out[1] = aw * by + bw * ay + (az * bx - ax * bz)
+    out[2] = aw * bz + bw * az + (ax * by - ay * bx)
+    out[3] = aw * bw - (ax * bx + ay * by + az * bz)
+
+
+@njit(cache=True, fastmath=_FM)
+def _qmat(q, R):
+    """``rotations.quat_to_matrix`` (normalises)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    R[0, 0] = 1 - 2 * (yy + zz)
+    R[0, 1] = 2 * (xy - wz)
+    R[0, 2] = 2 * (xz + wy)
+    R[1, 0] = 2 * (xy + wz)
+    R[1, 1] = 1 - 2 * (xx + zz)
+    R[1, 2] = 2 * (yz - wx)
+    R[2, 0] = 2 * (xz - wy)
+    R[2, 1] = 2 * (yz + wx)
+    R[2, 2] = 1 - 2 * (xx + yy)
+
+
+@njit(cache=True, fastmath=_FM)
+def _exp_quat(phi, out):
+    """``rotations.exp_quat``."""
+    ang = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    if ang < 1e-8:
+        k = 0.5 - ang * ang / 48.0
+    else:
+        k = math.sin(0.5 * ang) / ang
+    out[0] = k * phi[0]
+    out[1] = k * phi[1]
+    out[2] = k * phi[2]
+    out[3] = math.cos(0.5 * ang)
+
+
+@njit(cache=True, fastmath=_FM)
+def _log_quat(q, out):
+    """``rotations.log_quat`` (normalises, scalar part made non-negative)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    sg = -1.0 if q[3] / n < 0.0 else 1.0
+    vx, vy, vz, w = sg * q[0] / n, sg * q[1] / n, sg * q[2] / n, sg * q[3] / n
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if s < 1e-8:
+        k = 2.0 / w
+    else:
+        k = 2.0 * math.atan2(s, w) / s
+    out[0] = k * vx
+    out[1] = k * vy
+    out[2] = k * vz
+
+
+@njit(cache=True, fastmath=_FM)
+def _boxminus_q(q, q_hat, out):
+    """``rotations.boxminus``: log(q (x) conj(q_hat))."""
+    c = np.empty(4)
+    c[0], c[1], c[2], c[3] = -q_hat[0], -q_hat[1], -q_hat[2], q_hat[3]
+    m = np.empty(4)
+    _qmul(q, c, m)
+    _log_quat(m, out)
+
+
+@njit(cache=True, fastmath=_FM)
+def _boxplus(x, dx):
+    """``StateLayout.boxplus`` for this layout, in place: q <- exp(dtheta) (x) q."""
+    e = np.empty(4)
+    _exp_quat(dx[0:3], e)
+    q = x[0:4].copy()
+    _qmul(e, q, x[0:4])
+    for i in range(3, dx.shape[0]):
+        x[i + 1] += dx[i]
+
+
+@njit(cache=True, fastmath=_FM)
+def _mm_into(A, B, C):
+    """C = A @ B for small dense matrices (explicit loops, zero entries of A skipped: a BLAS
+    call per 3x3 or 9x9 product costs more than the product)."""
+    n, m, r = A.shape[0], A.shape[1], B.shape[1]
+    for i in range(n):
+        for j in range(r):
+            C[i, j] = 0.0
+        for k in range(m):
+            a = A[i, k]
+            if a != 0.0:
+                for j in range(r):
+                    C[i, j] += a * B[k, j]
+
+
+@njit(cache=True, fastmath=_FM)
+def _mm(A, B):
+    """A @ B (a new array) for small dense matrices, see :func:`_mm_into`."""
+    C = np.empty((A.shape[0], B.shape[1]))
+    _mm_into(A, B, C)
+    return C
+
+
+@njit(cache=True, fastmath=_FM)
+def _inv3(S, out):
+    """Inverse of a 3x3 matrix by cofactors (as ``ekf_dpacf._inv3``)."""
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 0], S[1, 1], S[1, 2]
+    g, h, i = S[2, 0], S[2, 1], S[2, 2]
+    A, B_, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B_ + c * C
+    out[0, 0], out[0, 1], out[0, 2] = A / det, -(b * i - c * h) / det, (b * f - c * e) / det
+    out[1, 0], out[1, 1], out[1, 2] = B_ / det, (a * i - c * g) / det, -(a * f - c * d) / det
+    out[2, 0], out[2, 1], out[2, 2] = C / det, -(a * h - b * g) / det, (a * e - b * d) / det
+
+
+@njit(cache=True, fastmath=_FM)
+def _rk4(x, dt):
+    """``ekf_dpacf.propagate_rotation``: RK4 of q and omega (Hu 2024 eq. 2, 21), in place."""
+    q0 = x[_NQ : _NQ + 4].copy()
+    w0 = x[_NW : _NW + 3].copy()
+    px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+    kq = np.zeros((4, 4))
+    kw = np.zeros((4, 3))
+    qs = q0.copy()
+    ws = w0.copy()
+    w4 = np.zeros(4)
+    dq = np.empty(4)
+    for s in range(4):
+        if s > 0:
+            h = dt if s == 3 else 0.5 * dt
+            for i in range(4):
+                qs[i] = q0[i] + h * kq[s - 1, i]
+            for i in range(3):
+                ws[i] = w0[i] + h * kw[s - 1, i]
+        w4[0], w4[1], w4[2] = ws[0], ws[1], ws[2]
+        _qmul(w4, qs, dq)  # dq/dt = -1/2 [w; 0] (x) q
+        for i in range(4):
+            kq[s, i] = -0.5 * dq[i]
+        kw[s, 0] = px * ws[1] * ws[2]  # Hu 2024 eq. 21-22
+        kw[s, 1] = py * ws[0] * ws[2]
+        kw[s, 2] = pz * ws[0] * ws[1]
+    qn = np.empty(4)
+    for i in range(4):
+        qn[i] = q0[i] + dt / 6 * (kq[0, i] + 2 * kq[1, i] + 2 * kq[2, i] + kq[3, i])
+    nrm = math.sqrt(qn[0] ** 2 + qn[1] ** 2 + qn[2] ** 2 + qn[3] ** 2)
+    for i in range(4):
+        x[_NQ + i] = qn[i] / nrm
+    for i in range(3):
+        x[_NW + i] = w0[i] + dt / 6 * (kw[0, i] + 2 * kw[1, i] + 2 * kw[2, i] + kw[3, i])
+
+
+@njit(cache=True, fastmath=_FM)
+def _rotation_discrete(w, p, s_r2, dt, ws):
+    """``ekf_dpacf.discretise(core_F(.., rotation_only=True), core_Qc[:9, :9], dt)``:
+    Phi (eq. 38, 4th-order series) and Q_k (eq. 39, Van Loan to dt^3) of the 9-state block,
+    written into the workspace ``ws`` (9, 9, 9): F, F^2, F^3, F^4, F Qc, F^2 Qc, F Qc F^T, then
+    returned as views ``Phi = ws[7]``, ``Q_k = ws[8]``."""
+    F, A2, A3, A4, FQ, F2Q, T, Phi, Qk = (
+        ws[0],
+        ws[1],
+        ws[2],
+        ws[3],
+        ws[4],
+        ws[5],
+        ws[6],
+        ws[7],
+        ws[8],
+    )
+    F[:, :] = 0.0
+    wx, wy, wz = w[0], w[1], w[2]
+    px, py, pz = p[0], p[1], p[2]
+    F[0, 1], F[0, 2] = wz, -wy  # -[w x]
+    F[1, 0], F[1, 2] = -wz, wx
+    F[2, 0], F[2, 1] = wy, -wx
+    F[0, 3] = F[1, 4] = F[2, 5] = -1.0
+    F[3, 4], F[3, 5] = px * wz, px * wy  # M(omega, p), eq. 30
+    F[4, 3], F[4, 5] = py * wz, py * wx
+    F[5, 3], F[5, 4] = pz * wy, pz * wx
+    F[3, 6] = wy * wz  # N(omega), eq. 30
+    F[4, 7] = wx * wz
+    F[5, 8] = wx * wy
+    _mm_into(F, F, A2)  # powers of F; the series takes dt^k / k! below
+    _mm_into(A2, F, A3)
+    _mm_into(A2, A2, A4)
+    dt2, dt3, dt4 = dt * dt, dt * dt * dt, dt * dt * dt * dt
+    for i in range(9):
+        for j in range(9):
+            Phi[i, j] = (
+                (1.0 if i == j else 0.0)
+                + F[i, j] * dt
+                + A2[i, j] * dt2 / 2
+                + A3[i, j] * dt3 / 6
+                + A4[i, j] * dt4 / 24
+            )
+    j1 = (1 - py) / (1 + px)  # J(p) of eq. 22 (noise_gain)
+    j2 = (1 + pz) / (1 - px)
+    q3, q4, q5 = s_r2, s_r2 * j1 * j1, s_r2 * j2 * j2  # Qc = diag(0,0,0,q3,q4,q5,0,0,0)
+    for i in range(9):  # F Qc: columns 3..5 of F scaled
+        for j in range(9):
+            FQ[i, j] = 0.0
+        FQ[i, 3], FQ[i, 4], FQ[i, 5] = F[i, 3] * q3, F[i, 4] * q4, F[i, 5] * q5
+    _mm_into(F, FQ, F2Q)
+    for i in range(9):  # T = F Qc F^T
+        for j in range(9):
+            T[i, j] = FQ[i, 3] * F[j, 3] + FQ[i, 4] * F[j, 4] + FQ[i, 5] * F[j, 5]
+    for i in range(9):
+        for j in range(i, 9):
+            qc = 0.0
+            if i == j and 3 <= i <= 5:
+                qc = (q3, q4, q5)[i - 3]
+            v = (
+                qc * dt
+                + (FQ[i, j] + FQ[j, i]) * dt2 / 2
+                + (F2Q[i, j] + 2 * T[i, j] + F2Q[j, i]) * dt3 / 6
+            )
+            Qk[i, j] = v  # symmetric by construction
+            Qk[j, i] = v
+    return Phi, Qk
+
+
+@njit(cache=True, fastmath=_FM)
+def _predict_cov(P, Phr, Qr, Pht, Qt):
+    """P <- Phi P Phi^T + Q with Phi = blockdiag(Phr (9), Pht (6), I), for a symmetric P.
+
+    Rows first, ``W = Phi[:15] P[:15]`` (zero entries of Phi skipped: the inertia rows of
+    Phr are the identity), then the columns: the feature columns of the result are ``W``
+    itself (Phi is the identity there) and are mirrored into the feature rows."""
+    d = P.shape[0]
+    W = np.zeros((15, d))
+    for r in range(9):
+        for m in range(9):
+            a = Phr[r, m]
+            if a != 0.0:
+                for j in range(d):
+                    W[r, j] += a * P[m, j]
+    for r in range(6):
+        for m in range(6):
+            a = Pht[r, m]
+            if a != 0.0:
+                for j in range(d):
+                    W[9 + r, j] += a * P[9 + m, j]
+    for i in range(15):
+        for j in range(9):
+            s = 0.0
+            for m in range(9):
+                s += W[i, m] * Phr[j, m]
+            P[i, j] = s
+        for j in range(6):
+            s = 0.0
+            for m in range(6):
+                s += W[i, 9 + m] * Pht[j, m]
+            P[i, 9 + j] = s
+        for j in range(15, d):
+            P[i, j] = W[i, j]
+            P[j, i] = W[i, j]
+    for i in range(9):
+        for j in range(9):
+            P[i, j] += Qr[i, j]
+    for i in range(6):
+        for j in range(6):
+            P[9 + i, 9 + j] += Qt[i, j]
+
+
+@njit(cache=True, fastmath=_FM)
+def _nees(P, e):
+    """``e^T P^-1 e`` by a Cholesky factorisation (LU solve if P is not positive definite)."""
+    d = P.shape[0]
+    L = np.zeros((d, d))
+    for j in range(d):
+        s = P[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return np.dot(e, np.linalg.solve(P, e))
+        L[j, j] = math.sqrt(s)
+        for i in range(j + 1, d):
+            s = P[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    out = 0.0
+    z = np.empty(d)
+    for i in range(d):  # z = L^-1 e, NEES = |z|^2
+        s = e[i]
+        for k in range(i):
+            s -= L[i, k] * z[k]
+        z[i] = s / L[i, i]
+        out += z[i] * z[i]
+    return out
+
+
+@njit(cache=True, fastmath=_FM)
+def _absorb(P, dx, HP, S, nu):
+    """One 3-row block of the sequential update (Hu 2024 eq. 40-42, Joseph form evaluated
+    as P - (HP)^T S^-1 (HP) for the optimal gain); returns the block's NIS."""
+    d = P.shape[0]
+    Si = np.empty((3, 3))
+    _inv3(S, Si)
+    Kt = np.zeros((3, d))  # S^-1 H P = K^T
+    for a in range(3):
+        for c in range(3):
+            s = Si[a, c]
+            for j in range(d):
+                Kt[a, j] += s * HP[c, j]
+    for j in range(d):
+        dx[j] += nu[0] * Kt[0, j] + nu[1] * Kt[1, j] + nu[2] * Kt[2, j]
+    # whole rows (contiguous, vectorised); the caller symmetrises after the last block
+    for i in range(d):
+        h0, h1, h2 = HP[0, i], HP[1, i], HP[2, i]
+        for j in range(d):
+            P[i, j] -= h0 * Kt[0, j] + h1 * Kt[1, j] + h2 * Kt[2, j]
+    nis = 0.0
+    for a in range(3):
+        for c in range(3):
+            nis += nu[a] * Si[a, c] * nu[c]
+    return nis
+
+
+@njit(cache=True, fastmath=_FM)
+def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fej):
+    """``ekf_dpacf._update_sequential`` for one run: the DPACF attitude (eq. 31), then each
+    visible feature (eq. 32-35), all linearised at the prior. Returns (NIS, dof)."""
+    d = P.shape[0]
+    dx = np.zeros(d)
+    nis = 0.0
+    dof = 0
+    Rq = np.empty((3, 3))
+    _qmat(x[_NQ : _NQ + 4], Rq)
+    R_LT = _mm(R_LI[k], Rq.T.copy())
+    HP = np.empty((3, d))
+    S = np.empty((3, 3))
+    nu = np.empty(3)
+    if use_att:
+        ok0 = True
+        for i in range(4):
+            if not np.isfinite(q_meas[k, i]):
+                ok0 = False
+        if ok0:
+            for a in range(3):
+                for j in range(d):
+                    HP[a, j] = P[_SA + a, j]
+                for c in range(3):
+                    S[a, c] = HP[a, _SA + c] + R0[a, c]
+            _boxminus_q(q_meas[k], x[_NQ : _NQ + 4], nu)
+            nis += _absorb(P, dx, HP, S, nu)
+            dof += 3
+    r = x[_NR : _NR + 3].copy()
+    Hth = np.empty((3, 3))
+    for i in range(N):
+        if not usable[k, i]:
+            continue
+        fo = _NF + 3 * i
+        fe = _SF + 3 * i
+        fl = x[fo : fo + 3].copy()
+        if fej and np.isfinite(f_lin[i, 0]):
+            fl[:] = f_lin[i]
+        # Hth = R_LT [fl x]
+        for a in range(3):
+            Hth[a, 0] = R_LT[a, 1] * fl[2] - R_LT[a, 2] * fl[1]
+            Hth[a, 1] = R_LT[a, 2] * fl[0] - R_LT[a, 0] * fl[2]
+            Hth[a, 2] = R_LT[a, 0] * fl[1] - R_LT[a, 1] * fl[0]
+        for a in range(3):
+            for j in range(d):
+                s = P[_SR + a, j]
+                for c in range(3):
+                    s += Hth[a, c] * P[_SA + c, j] + R_LT[a, c] * P[fe + c, j]
+                HP[a, j] = s
+        for a in range(3):
+            for c in range(3):
+                s = HP[a, _SR + c] + cov_L[k, i, a, c]
+                for m in range(3):
+                    s += HP[a, _SA + m] * Hth[c, m] + HP[a, fe + m] * R_LT[c, m]
+                S[a, c] = s
+            # innovation against the prior prediction, minus what the earlier blocks moved
+            s = p_L[k, i, a] - r[a] - dx[_SR + a]
+            for m in range(3):
+                s -= R_LT[a, m] * x[fo + m] + Hth[a, m] * dx[_SA + m] + R_LT[a, m] * dx[fe + m]
+            nu[a] = s
+        nis += _absorb(P, dx, HP, S, nu)
+        dof += 3
+    for i in range(d):
+        for j in range(i + 1, d):
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
+    _boxplus(x, dx)
+    return nis, dof
+
+
+@njit(cache=True, fastmath=_FM)
+def _constrain(x, P):
+    """``ekf_dpacf.constrain_inertia`` for one run: c(p) = px + py + pz + px py pz = 0 as a
+    near-perfect scalar pseudo-measurement, then |p_i| <= 0.999."""
+    d = P.shape[0]
+    px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+    c = px + py + pz + px * py * pz
+    g0, g1, g2 = 1 + py * pz, 1 + px * pz, 1 + px * py
+    PH = np.empty(d)
+    for i in range(d):
+        PH[i] = P[i, _SP] * g0 + P[i, _SP + 1] * g1 + P[i, _SP + 2] * g2
+    s = g0 * PH[_SP] + g1 * PH[_SP + 1] + g2 * PH[_SP + 2] + 1e-10
+    dx = np.empty(d)
+    for i in range(d):
+        dx[i] = -PH[i] / s * c
+    _boxplus(x, dx)
+    for i in range(d):
+        for j in range(d):
+            P[i, j] -= PH[i] / s * PH[j]
+    for i in range(3):
+        x[_NP + i] = min(max(x[_NP + i], -0.999), 0.999)
+    for i in range(d):
+        for j in range(i + 1, d):
+            v = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = v
+            P[j, i] = v
+
+
+@njit(cache=True, fastmath=_FM)
+def _diverged(x, P, N):
+    """``ekf_dpacf._diverged`` for one run."""
+    for v in x:
+        if not np.isfinite(v):
+            return True
+    for v in P.ravel():
+        if not np.isfinite(v):
+            return True
+    w = math.sqrt(x[_NW] ** 2 + x[_NW + 1] ** 2 + x[_NW + 2] ** 2)
+    if not w < 20:
+        return True
+    for i in range(3):
+        if not abs(x[_NP + i]) < 10:
+            return True
+    for i in range(3 * N):
+        if not abs(x[_NF + i]) < 1e3:
+            return True
+    return False
+
+
+@njit(cache=True, fastmath=_FM)
+def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need):
+    """``ekf_dpacf._follow_dpacf_branch`` for one run; returns the new vote count and whether
+    the state was turned."""
+    for i in range(4):
+        if not np.isfinite(q_meas[i]):
+            return votes, False  # no measurement: the streak is kept
+    Re = np.empty((3, 3))
+    Rm = np.empty((3, 3))
+    _qmat(x[_NQ : _NQ + 4], Re)
+    _qmat(q_meas, Rm)
+    D = _mm(Rm, Re.T.copy())
+    best, which = 1e300, 0
+    for f in range(3):
+        s = 0.0
+        for a in range(3):
+            for c in range(3):
+                e = D[a, c] - flips[f, a, c]
+                s += e * e
+        s = math.sqrt(s)
+        if s < best:
+            best, which = s, f
+    if not best < 1.0:
+        return 0, False
+    votes += 1
+    if votes < need:
+        return votes, False
+    sg = np.ones(P.shape[0])  # J = diag of +-1 (the turn is a diagonal matrix)
+    for a in range(3):
+        fa = flips[which, a, a]
+        sg[_SA + a] = fa
+        sg[_SW + a] = fa
+        for i in range(N):
+            sg[_SF + 3 * i + a] = fa
+    q = x[_NQ : _NQ + 4].copy()
+    _qmul(qflips[which], q, x[_NQ : _NQ + 4])
+    for a in range(3):
+        fa = flips[which, a, a]
+        x[_NW + a] *= fa
+        for i in range(N):
+            x[_NF + 3 * i + a] *= fa
+    for i in range(P.shape[0]):
+        for j in range(P.shape[0]):
+            P[i, j] *= sg[i] * sg[j]
+    return 0, True
+
+
+@njit(cache=True, fastmath=_FM)
+def run_filter_kernel(
+    t,
+    p_L,
+    cov_L,
+    usable,
+    known_at,
+    q_meas,
+    R0,
+    R_LI,
+    k0,
+    x0,
+    P0,
+    use_dpacf,
+    fej,
+    att_every,
+    flip_need,
+    constrain_every,
+    s_r2,
+    Pht,
+    Qt,
+    flips,
+    qflips,
+    xt,
+    nees_every,
+    neutral,
+    out_x,
+    out_P,
+    nis,
+    nis_dof,
+    err,
+    nees,
+    diverged,
+    flip_count,
+):
+    """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
+    ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
+    (B,n,nom) the truth in the filter's frame or an empty array, ``out_x``/``out_P`` empty
+    (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive)."""
+    B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
+    d = P0.shape[1]
+    keep = out_x.shape[1] > 0
+    truth = xt.shape[1] > 0
+    for b in range(B):
+        x = neutral.copy()
+        P = np.eye(d)
+        active = False
+        votes = 0
+        f_first = np.full((N, 3), np.nan)
+        e = np.empty(d)
+        ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
+        for k in range(n):
+            if k > 0 and active:
+                dt = t[k] - t[k - 1]
+                Phr, Qr = _rotation_discrete(x[_NW : _NW + 3], x[_NP : _NP + 3], s_r2, dt, ws)
+                _rk4(x, dt)
+                rv = x[_NR : _NR + 6].copy()
+                for i in range(6):
+                    s = 0.0
+                    for m in range(6):
+                        s += Pht[i, m] * rv[m]
+                    x[_NR + i] = s
+                _predict_cov(P, Phr, Qr, Pht, Qt)
+            start = k == k0[b] and not diverged[b]
+            if start:
+                x[:] = x0[b]
+                P[:, :] = P0[b]
+                active = True
+            if active:
+                use_att = use_dpacf and (k % att_every == 0)
+                if use_att:
+                    votes, turned = _follow_branch(
+                        x, P, q_meas[b, k], N, flips, qflips, votes, flip_need
+                    )
+                    if turned:
+                        flip_count[b] += 1
+                if fej:
+                    for i in range(N):
+                        fresh = (start and known_at[b, k, i]) or (
+                            usable[b, k, i] and not np.isfinite(f_first[i, 0])
+                        )
+                        if fresh:
+                            f_first[i] = x[_NF + 3 * i : _NF + 3 * i + 3]
+                nis_k, dof_k = _update(
+                    x, P, k, N, p_L[b], cov_L[b], usable[b], q_meas[b], R0[b, k], use_att,
+                    R_LI[b], f_first, fej,
+                )  # fmt: skip
+                if start or k % constrain_every == 0:
+                    _constrain(x, P)
+                if _diverged(x, P, N):  # a run that blew up is stopped and counted
+                    diverged[b] = True
+                    active = False
+                    x[:] = neutral
+                    P[:, :] = np.eye(d)
+                if active:
+                    nis_dof[b, k] = dof_k
+                    if dof_k > 0:
+                        nis[b, k] = nis_k
+            if keep and active:
+                out_x[b, k] = x
+                out_P[b, k] = P
+            if truth and active:
+                _boxminus_q(xt[b, k, 0:4], x[0:4], e[0:3])
+                for i in range(3, d):
+                    e[i] = xt[b, k, i + 1] - x[i + 1]
+                err[b, k] = e
+                if k % nees_every == 0:
+                    nees[b, k] = _nees(P, e)
