@@ -425,7 +425,7 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
 
 
 @njit(cache=True, fastmath=_FM)
-def _constrain(x, P):
+def _constrain(x, P, curvature):
     """``ekf_dpacf.constrain_inertia`` for one run: c(p) = px + py + pz + px py pz = 0 as a
     near-perfect scalar pseudo-measurement, then |p_i| <= 0.999."""
     d = P.shape[0]
@@ -445,6 +445,20 @@ def _constrain(x, P):
             P[i, j] -= PH[i] / s * PH[j]
     for i in range(3):
         x[_NP + i] = min(max(x[_NP + i], -0.999), 0.999)
+    if curvature:  # ekf_dpacf.curvature_variance, set back along the new gradient
+        px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+        C = np.array([[0.0, pz, py], [pz, 0.0, px], [py, px, 0.0]])
+        CP = _mm(C, P[_SP : _SP + 3, _SP : _SP + 3].copy())
+        tr = CP[0, 0] + CP[1, 1] + CP[2, 2]
+        v = 0.25 * tr * tr
+        for a in range(3):
+            for b in range(3):
+                v += 0.5 * CP[a, b] * CP[b, a]
+        g = np.array([1 + py * pz, 1 + px * pz, 1 + px * py])
+        gg = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+        for a in range(3):
+            for b in range(3):
+                P[_SP + a, _SP + b] += v * g[a] * g[b] / (gg * gg)
     for i in range(d):
         for j in range(i + 1, d):
             v = 0.5 * (P[i, j] + P[j, i])
@@ -538,6 +552,7 @@ def run_filter_kernel(
     att_every,
     flip_need,
     constrain_every,
+    curvature,
     s_r2,
     Pht,
     Qt,
@@ -608,7 +623,7 @@ def run_filter_kernel(
                     R_LI[b], f_first, fej,
                 )  # fmt: skip
                 if start or k % constrain_every == 0:
-                    _constrain(x, P)
+                    _constrain(x, P, curvature)
                 if _diverged(x, P, N):  # a run that blew up is stopped and counted
                     diverged[b] = True
                     active = False
