@@ -6,7 +6,7 @@ inertia ratios, position, velocity, features), and whether the run ended on the 
 branch turned by a half turn (attitude error > 90 deg). Prints means over all runs, over the
 runs on the right branch, and medians.
 
-Usage: python benchmarks/hu2024_block_nees.py [--runs 40] [--noise 2e-5]
+Usage: python benchmarks/hu2024_block_nees.py [--runs 40] [--first 0] [--noise 2e-5]
        [--scenario hu2024] [--set key=value ...]  (estimator.tuning overrides, YAML values)
 Last line: ``nees_all=<mean NEES/dof, all runs> nees_right_branch=<mean, right-branch runs>
 median_run=<median per-run NEES/dof> wrong_branch=<runs> attitude_median_deg=<median RMS>``
@@ -38,6 +38,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="hu2024")
     ap.add_argument("--runs", type=int, default=40)
+    ap.add_argument("--first", type=int, default=0, help="index of the first run")
     ap.add_argument("--noise", type=float, default=2e-5, help="angular resolution (rad)")
     ap.add_argument("--batch", type=int, default=20)
     ap.add_argument("--every", type=int, default=5, help="epochs between NEES samples")
@@ -51,8 +52,9 @@ def main() -> None:
     sc = sc.with_updates(**{"sensor.noise.angular_rad": args.noise, "estimator.tuning": tuning})
     t0, t1 = sc.window_s
     rows = []
-    for start in range(0, args.runs, args.batch):
-        ks = range(start, min(args.runs, start + args.batch))
+    last = args.first + args.runs
+    for start in range(args.first, last, args.batch):
+        ks = range(start, min(last, start + args.batch))
         sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in ks]
         res = hu.run_filter(sc, [m for _, m in sims], True, truths=[t for t, _ in sims])
         t = res["t"]
