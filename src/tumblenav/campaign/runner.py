@@ -190,15 +190,35 @@ def _execute(
                 done = evaluate_and_store(scenario, estimator_name, base_seed, ks, root)
                 prog.advance(task, len(done))
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                pending = {
-                    pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
-                    for ks in chunks
-                }
+            pool = _local_pool(workers)
+            pending = {
+                pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
+                for ks in chunks
+            }
+            try:
                 while pending:
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:
                         prog.advance(task, len(f.result()))
+            except BaseException:
+                for f in pending:
+                    f.cancel()
+                _POOLS.pop(workers, None)
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+
+
+_POOLS: dict[int, ProcessPoolExecutor] = {}
+
+
+def _local_pool(workers: int) -> ProcessPoolExecutor:
+    """A process pool kept for the next campaign of this process (``reproduce`` runs several,
+    one per case): its workers have imported tumblenav and loaded the compiled kernels once.
+    Shut down at interpreter exit; replaced if a worker died."""
+    pool = _POOLS.get(workers)
+    if pool is None or getattr(pool, "_broken", False):
+        pool = _POOLS[workers] = ProcessPoolExecutor(max_workers=workers)
+    return pool
 
 
 def _execute_dask(
