@@ -467,7 +467,7 @@ def _constrain(x, P, curvature):
 
 
 @njit(cache=True, fastmath=_FM)
-def _diverged(x, P, N):
+def _diverged(x, P, N, max_rate):
     """``ekf_dpacf._diverged`` for one run."""
     for v in x:
         if not np.isfinite(v):
@@ -476,7 +476,7 @@ def _diverged(x, P, N):
         if not np.isfinite(v):
             return True
     w = math.sqrt(x[_NW] ** 2 + x[_NW + 1] ** 2 + x[_NW + 2] ** 2)
-    if not w < 20:
+    if not w < max_rate:
         return True
     for i in range(3):
         if not abs(x[_NP + i]) < 10:
@@ -553,6 +553,7 @@ def run_filter_kernel(
     flip_need,
     constrain_every,
     curvature,
+    max_rate,
     s_r2,
     Pht,
     Qt,
@@ -624,7 +625,7 @@ def run_filter_kernel(
                 )  # fmt: skip
                 if start or k % constrain_every == 0:
                     _constrain(x, P, curvature)
-                if _diverged(x, P, N):  # a run that blew up is stopped and counted
+                if _diverged(x, P, N, max_rate):  # a run that blew up is stopped and counted
                     diverged[b] = True
                     active = False
                     x[:] = neutral

@@ -101,9 +101,22 @@ class HuTuning(BaseModel):
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
     )
     constraint_curvature: bool = Field(
-        False,
+        True,
         description="keep the variance that the inertia constraint's curvature leaves along "
         "its gradient (beyond the paper; see constrain_inertia)",
+    )
+    mass_centre_init: Literal["rotation", "centroid"] = Field(
+        "rotation",
+        description="'centroid': the filter starts with the mass centre at the feature "
+        "centroid (1-sigma p0_mass_centre_m); 'rotation': from a batch least squares over "
+        "the rotation seen before the start (beyond the paper, mass_centre_from_rotation)",
+    )
+    p0_mass_centre_floor_m: float = Field(
+        0.015,
+        ge=0,
+        description="1-sigma per axis added to the batch mass centre's covariance "
+        "(mass_centre_init 'rotation'): its least-squares covariance misses the template "
+        "and G-attitude errors; measured errors per axis 3-14 mm rms (docs/results/hu2024.md)",
     )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
@@ -242,6 +255,65 @@ def feature_measurement(
 # --- the filter -------------------------------------------------------------------------
 
 
+def mass_centre_from_rotation(
+    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
+) -> tuple[Array, Array] | None:
+    """Batch least squares for the mass centre before the filter starts (beyond Hu 2024).
+
+    Every feature seen at epoch j obeys ``p_L,i(j) = r(j) + R_LG(j) (g_i - c_G)``, with the G
+    template ``g_i``, the measured G attitude ``R_LG = R_LI R_GI^T``, the constant mass centre
+    ``c_G`` in G and the mass-centre position ``r(j) = Phi_CW(t_j - t_0) [r_0; v_0]`` (Hill,
+    Hu 2024 eq. 4-5, no disturbance over the window). That is linear in ``[r_0, v_0, c_G]``;
+    the rotation of the target separates ``c_G`` from the translation.
+
+    The window is the first ``window_s`` of G attitudes (the closest, most precise data),
+    ending at epoch k at the latest (causal). Each point is weighted by the inverse of its
+    triangulation covariance plus what the G attitude error ``cov_G`` does to it
+    (``R_LG [(g_i - c) x] cov_G [(g_i - c) x]^T R_LG^T``, at the centroid, then at the first
+    solution); the covariance is scaled by the reduced chi-square when that exceeds one.
+
+    Returns ``(c_G, cov_c_G)``, or None when the window holds too little rotation to tell
+    ``c_G`` (its 1-sigma above 0.5 m).
+    """
+    from tumblenav.dynamics.relative_orbit import cw_stm
+
+    t = fe.t
+    have = np.flatnonzero(np.all(np.isfinite(fe.R_GI[b, : k + 1]), axis=(-1, -2)))
+    if len(have) < 10:
+        return None
+    j = have[t[have] <= t[have[0]] + window_s]
+    use = fe.usable[b, j] & fe.known_at[b, k][None, :]
+    if use.sum() < 12:
+        return None
+    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
+    g = np.nan_to_num(fe.template_G[b])  # (N,3)
+    Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
+    jj, ii = np.nonzero(use)
+    d = fe.p_L[b, j[jj], ii] - (R_LG[jj] @ g[ii][..., None])[..., 0]  # (M,3)
+    A = np.concatenate([Phi[jj], -R_LG[jj]], axis=2)  # (M,3,9)
+    c = np.mean(g[fe.known_at[b, k]], axis=0)
+    for _ in range(2):
+        lever = R_LG[jj] @ rot.skew(g[ii] - c)  # d error per G attitude error (in G)
+        C = fe.cov_L[b, j[jj], ii] + lever @ fe.cov_G[b, j[jj]] @ np.swapaxes(lever, -1, -2)
+        W = np.linalg.inv(C)  # (M,3,3)
+        AtW = np.swapaxes(A, -1, -2) @ W
+        N = np.sum(AtW @ A, axis=0)
+        rhs = np.sum(AtW @ d[..., None], axis=0)[:, 0]
+        try:
+            Ninv = np.linalg.inv(N)
+        except np.linalg.LinAlgError:
+            return None
+        x = Ninv @ rhs
+        c = x[6:]
+    res = d - (A @ x[:, None])[..., 0]
+    chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
+    dof = max(3 * len(d) - 9, 1)
+    cov_c = Ninv[6:, 6:] * max(1.0, chi2 / dof)
+    if not np.all(np.isfinite(cov_c)) or np.sqrt(np.max(np.linalg.eigvalsh(cov_c))) > 0.5:
+        return None
+    return c, cov_c
+
+
 @dataclass
 class _Init:
     k0: NDArray[np.int64]  # (B,) first filter epoch (-1: never)
@@ -250,7 +322,11 @@ class _Init:
 
 
 def _initial_state(
-    fe: stereo_points.PointsFrontEnd, tun: HuTuning, use_dpacf: bool, lay: StateLayout
+    fe: stereo_points.PointsFrontEnd,
+    tun: HuTuning,
+    use_dpacf: bool,
+    lay: StateLayout,
+    n_orbit: float = 0.0,
 ) -> _Init:
     B, n, N = fe.usable.shape
     ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
@@ -279,7 +355,14 @@ def _initial_state(
         u = fe.usable[b, k]
         kn = fe.known[b]
         g = fe.template_G[b]
-        gbar = np.nanmean(g[kn], axis=0)
+        gbar = np.nanmean(g[kn], axis=0)  # mass centre guess: the feature centroid
+        Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
+        if tun.mass_centre_init == "rotation":
+            batch = mass_centre_from_rotation(fe, b, k, n_orbit)
+            if batch is not None:
+                gbar, cov_c = batch
+                floor = tun.p0_mass_centre_floor_m**2 * np.eye(3)
+                Sc = R_TG @ (cov_c + floor) @ R_TG.T
         f = np.where(kn[:, None], (R_TG @ np.nan_to_num(g - gbar).T).T, 0.0)
         # r such that the predicted features match the measured ones on average:
         # r = mean_i (p_L,i - R_LT f_i) over the visible, catalogued features (weighted)
@@ -288,11 +371,27 @@ def _initial_state(
         resid = np.nan_to_num(fe.p_L[b, k]) - f @ R_LT.T
         r0 = np.sum(wts[:, None] * resid, 0) / wts.sum()
         w = R_TG @ fe.omega_G[b, k]
-        # velocity of the centroid of the features seen at k and k - h (differencing)
+        # velocity: with mass_centre_init 'rotation', of the mass centre, by differencing at
+        # k and k - h the point ``p_L,i - R_LG (g_i - gbar)`` of the features seen at both
+        # (the centroid's velocity adds omega x (centroid - mass centre)); else of the
+        # centroid of the features seen at both
         h = min(tun.rate_half_window * 2, k)
-        common = u & fe.usable[b, k - h] if h > 0 else u
-        if h > 0 and common.sum() >= 3:
-            v = (fe.p_L[b, k, common].mean(0) - fe.p_L[b, k - h, common].mean(0)) / (
+        common = u & fe.usable[b, k - h] & kn if h > 0 else u
+        G_ok = (
+            tun.mass_centre_init == "rotation"
+            and h > 0
+            and bool(np.all(np.isfinite(fe.R_GI[b, [k, k - h]])))
+        )
+        if G_ok and common.sum() >= 3:
+            gc = np.nan_to_num(g[common] - gbar)
+            cen = [
+                np.mean(fe.p_L[b, j, common] - gc @ (fe.R_LI[b, j] @ fe.R_GI[b, j].T).T, axis=0)
+                for j in (k, k - h)
+            ]
+            v = (cen[0] - cen[1]) / (fe.t[k] - fe.t[k - h])
+        elif h > 0 and (u & fe.usable[b, k - h]).sum() >= 3:
+            both = u & fe.usable[b, k - h]
+            v = (fe.p_L[b, k, both].mean(0) - fe.p_L[b, k - h, both].mean(0)) / (
                 fe.t[k] - fe.t[k - h]
             )
         else:
@@ -305,7 +404,6 @@ def _initial_state(
         x0[b, lay.nom("features")] = f.ravel()
         # covariance: the unknown mass-centre offset c (in T) correlates r and every f_i:
         # r = r0 + R_LT c, f_i = f0_i - c.
-        Sc = tun.p0_mass_centre_m**2 * np.eye(3)
         P = np.zeros((lay.dim, lay.dim))
         P[lay.err("attitude"), lay.err("attitude")] = cov_att
         P[lay.err("rate"), lay.err("rate")] = tun.p0_rate_rad_s**2 * np.eye(3)
@@ -384,7 +482,7 @@ def run_filter(
     fe = frontend(meas_list, tun)
     B, n, N = fe.usable.shape
     lay = layout(N)
-    init = _initial_state(fe, tun, use_dpacf, lay)
+    init = _initial_state(fe, tun, use_dpacf, lay, n_orbit)
     d = lay.dim
     x = np.tile(_neutral_state(lay), (B, 1))
     P = np.tile(np.eye(d), (B, 1, 1))
@@ -434,6 +532,7 @@ def run_filter(
             t, fe.p_L, np.nan_to_num(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
             init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
             tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
+            MAX_RATE_RAD_S,
             s_r2, Pht, Qt,
             _FLIPS, rot.matrix_to_quat(_FLIPS), xt if xt is not None else empty(1), nees_every,
             _neutral_state(lay), out_x if keep_history else empty(1),
@@ -602,13 +701,13 @@ def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
 
 
 def _diverged(x: Array, P: Array, lay: StateLayout) -> NDArray[np.bool_]:
-    """Runs whose state left any physical range (non-finite, |omega| > 20 rad/s, |p| > 10,
-    features beyond 1 km)."""
+    """Runs whose state left any physical range (non-finite, |omega| above MAX_RATE_RAD_S,
+    |p| > 10, features beyond 1 km)."""
     fin = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
     w = np.linalg.norm(x[:, lay.nom("rate")], axis=1)
     p = np.abs(x[:, lay.nom("inertia")]).max(axis=1)
     f = np.abs(x[:, lay.nom("features")]).max(axis=1, initial=0.0)
-    return ~fin | ~(w < 20) | ~(p < 10) | ~(f < 1e3)
+    return ~fin | ~(w < MAX_RATE_RAD_S) | ~(p < 10) | ~(f < 1e3)
 
 
 def inertia_constraint(p: Array, jac: bool = False):
@@ -952,6 +1051,9 @@ def truth_in_frame(truth: Any, R_TcT: Array, lay: StateLayout) -> Array:
 
 
 ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)
+# A rate estimate above one turn per second is a filter that blew up: ten times the fastest
+# tumble reported for malfunctioning spacecraft (36 deg/s, Hu 2024 Sec. 5 citing [27]).
+MAX_RATE_RAD_S = 2 * np.pi
 CONSTRAIN_EVERY = 10  # epochs between projections onto the inertia constraint
 NEES_EVERY = 10  # campaigns sample the NEES every 10 epochs (1 Hz for hu2024)
 
