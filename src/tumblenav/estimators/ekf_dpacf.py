@@ -119,7 +119,8 @@ class HuTuning(BaseModel):
         ge=0,
         description="1-sigma per axis added to the batch mass centre's covariance "
         "(mass_centre_init 'rotation'): its least-squares covariance misses the template "
-        "and G-attitude errors; measured errors per axis 3-14 mm rms (docs/results/hu2024.md)",
+        "and G-attitude errors; measured errors per axis 3-14 mm rms "
+        "(benchmarks/hu2024_mass_centre.py)",
     )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
