@@ -664,3 +664,29 @@ def test_mass_centre_from_rotation_finds_the_mass_centre():
         assert np.all(np.linalg.eigvalsh(cov) > 0)
         first = int(np.flatnonzero(np.all(np.isfinite(fe.R_GI[b]), axis=(-1, -2)))[0])
         assert hu.mass_centre_from_rotation(fe, b, first + 3, n) is None
+
+
+def test_dpacf_emission_threshold_does_not_change_the_filter():
+    """The front end reports DPACF frames from ``dpacf_emit_sigma_rad`` on (Fig. 5); the
+    filter starts and measures with frames below ``max_dpacf_sigma_rad`` only, so its result
+    does not depend on the emission threshold, while earlier frames are reported."""
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.scenario import load_scenario
+    from tumblenav.simulation import simulate
+
+    out = {}
+    for emit in (0.05, 0.3):
+        s = load_scenario("hu2024").with_updates(
+            duration_s=60.0,
+            steady_state_window_s=[50.0, 60.0],
+            **{"estimator.tuning": {"dpacf_emit_sigma_rad": emit}},
+        )
+        sims = [simulate(s, run_seed(5, k)) for k in range(2)]
+        out[emit] = hu.run_filter(s, [m for _, m in sims], True, truths=[t for t, _ in sims])
+    a, b = out[0.05], out[0.3]
+    assert np.array_equal(a["k0"], b["k0"])
+    assert np.array_equal(a["x"], b["x"], equal_nan=True)
+    first = [np.flatnonzero(np.isfinite(r["dpacf_q_TI"][:, :, 0]).any(axis=0))[0] for r in (a, b)]
+    assert first[1] < first[0]
+    sig = np.sqrt(np.linalg.eigvalsh(np.nan_to_num(b["frontend"].cov_frame, nan=1e6))[..., -1])
+    assert np.all(np.isnan(b["frontend"].q_TI[sig >= 0.05]))

@@ -31,6 +31,7 @@ vectorisation that makes a 2000-run campaign take seconds (benchmarks/hu2024_cam
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -85,6 +86,13 @@ class HuTuning(BaseModel):
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
     max_dpacf_sigma_rad: float = Field(0.05, gt=0, description="start once DPACF is this good")
+    dpacf_emit_sigma_rad: float = Field(
+        0.2,
+        gt=0,
+        description="the front end gives a DPACF frame (Hu 2024 Fig. 5, the filter's attitude "
+        "measurement) once its 1-sigma is below this; the filter itself starts at "
+        "max_dpacf_sigma_rad",
+    )
     dpacf_measurement: Literal["attitude", "frame"] = Field(
         "attitude",
         description="'attitude': Hu 2024 eq. 31 (q_TI = q_TG q_GI, every epoch); 'frame': the "
@@ -335,6 +343,10 @@ def _initial_state(
     B, n, N = fe.usable.shape
     ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
     ready &= fe.usable.sum(axis=-1) >= 3
+    # the front end gives DPACF frames from dpacf_emit_sigma_rad on; the filter waits for one
+    # whose 1-sigma (largest axis) is below max_dpacf_sigma_rad
+    sig_frame = np.sqrt(np.linalg.eigvalsh(np.nan_to_num(fe.cov_frame, nan=1e6))[..., -1])
+    ready &= sig_frame < tun.max_dpacf_sigma_rad
     k0 = np.where(ready.any(axis=1), np.argmax(ready, axis=1), -1)
     x0 = np.zeros((B, lay.nominal_dim))
     P0 = np.zeros((B, lay.dim, lay.dim))
@@ -485,7 +497,8 @@ def run_filter(
     covered = tun.dpacf_measurement == "attitude" and tun.gate_probability is None
     if engine == "compiled" and not covered:
         raise ValueError("the compiled engine covers dpacf_measurement 'attitude' without a gate")
-    fe = frontend(meas_list, tun)
+    fe_all = frontend(meas_list, tun)
+    fe = filter_view(fe_all, tun.max_dpacf_sigma_rad)
     B, n, N = fe.usable.shape
     lay = layout(N)
     init = _initial_state(fe, tun, use_dpacf, lay, n_orbit)
@@ -561,6 +574,7 @@ def run_filter(
             "diverged": diverged,
             "x_true": xt,
             "frame_flips": flips,
+            "dpacf_q_TI": fe_all.q_TI,
         }
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
@@ -654,6 +668,7 @@ def run_filter(
         "diverged": diverged,
         "x_true": xt,
         "frame_flips": flips,
+        "dpacf_q_TI": fe_all.q_TI,
     }
 
 
@@ -994,13 +1009,33 @@ def _feature_cols(HPf_cols: Array, R_LT: Array, B: int, m: int, N: int) -> Array
     return X.reshape(B, m, 3 * N)
 
 
+def filter_view(
+    fe: stereo_points.PointsFrontEnd, max_sigma_rad: float
+) -> stereo_points.PointsFrontEnd:
+    """The front end as the filter uses it: DPACF frames (attitude measurement, frame, moments)
+    only where the frame's 1-sigma (largest axis) is below ``max_sigma_rad``. The front end
+    itself reports them from ``dpacf_emit_sigma_rad`` on (Hu 2024 Fig. 5)."""
+    sig = np.sqrt(np.linalg.eigvalsh(np.nan_to_num(fe.cov_frame, nan=1e6))[..., -1])
+    keep = sig < max_sigma_rad
+    view = dataclasses.replace(
+        fe,
+        q_TI=np.where(keep[..., None], fe.q_TI, np.nan),
+        cov_TI=np.where(keep[..., None, None], fe.cov_TI, np.nan),
+        cov_frame=np.where(keep[..., None, None], fe.cov_frame, np.nan),
+        R_GT=np.where(keep[..., None, None], fe.R_GT, np.nan),
+        moments=np.where(keep[..., None], fe.moments, np.nan),
+    )
+    view.R_LI = fe.R_LI
+    return view
+
+
 def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
     fe = stereo_points.process(
         meas_list,
         stereo_points.FrontEndSettings(
             rate_half_window=tun.rate_half_window,
             min_ls_epochs=tun.min_ls_epochs,
-            max_dpacf_sigma_rad=tun.max_dpacf_sigma_rad,
+            max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
         ),
     )
     fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
@@ -1105,7 +1140,7 @@ class HuEKF:
                 "template_G": fe.template_G[0],
                 "known": fe.known[0],
                 "start_time_s": float(res["t"][res["k0"][0]]) if res["k0"][0] >= 0 else None,
-                "dpacf_q_TI": fe.q_TI[0],
+                "dpacf_q_TI": res["dpacf_q_TI"][0],
                 "start_condition": (
                     "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
                     f"{parse_tuning(scenario.estimator.tuning).max_dpacf_sigma_rad} rad; "
@@ -1130,7 +1165,9 @@ class HuEKF:
         )
         fe, lay = res["frontend"], res["layout"]
         mags = error_magnitudes(res["err"], lay)
-        dpacf = np.degrees(attitude_error_rad(res["x_true"][..., lay.nom("attitude")], fe.q_TI))
+        dpacf = np.degrees(
+            attitude_error_rad(res["x_true"][..., lay.nom("attitude")], res["dpacf_q_TI"])
+        )
         out = []
         for b in range(len(measurements)):
             errors = {k: v[b] for k, v in mags.items()}
