@@ -307,13 +307,15 @@ def mass_centre_from_rotation(
     for _ in range(2):
         lever = R_LG[jj] @ rot.skew(g[ii] - c)  # d error per G attitude error (in G)
         C = fe.cov_L[b, j[jj], ii] + lever @ fe.cov_G[b, j[jj]] @ np.swapaxes(lever, -1, -2)
-        W = np.linalg.inv(C)  # (M,3,3)
-        AtW = np.swapaxes(A, -1, -2) @ W
-        N = np.sum(AtW @ A, axis=0)
-        rhs = np.sum(AtW @ d[..., None], axis=0)[:, 0]
         try:
+            W = np.linalg.inv(C)  # (M,3,3)
+            AtW = np.swapaxes(A, -1, -2) @ W
+            N = np.sum(AtW @ A, axis=0)
+            rhs = np.sum(AtW @ d[..., None], axis=0)[:, 0]
             Ninv = np.linalg.inv(N)
-        except np.linalg.LinAlgError:
+        except np.linalg.LinAlgError:  # degenerate data: keep the centroid guess
+            return None
+        if not (np.all(np.isfinite(Ninv)) and np.all(np.isfinite(rhs))):
             return None
         x = Ninv @ rhs
         c = x[6:]
