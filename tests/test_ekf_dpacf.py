@@ -535,38 +535,62 @@ def test_frame_measurement_and_its_jacobian():
 
 
 @pytest.mark.parametrize(
-    "use_dpacf, tuning",
-    [(True, {}), (False, {}), (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0})],
+    "use_dpacf, tuning, noise, duration, runs, expect",
+    [
+        (True, {}, 2e-5, 90.0, 3, "start"),
+        (False, {}, 2e-5, 90.0, 3, "start"),
+        (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
+        # ekf-baseline with the curvature term diverges in runs 0-2 of these seeds
+        (False, {"constraint_curvature": True}, 1e-6, 200.0, 4, "diverge"),
+        # at 5e-5 rad run 1 never gets a DPACF frame good enough to start
+        (True, {}, 5e-5, 100.0, 2, "never"),
+    ],
 )
-def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning):
+def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration, runs, expect):
     """The compiled per-run loop is the numpy filter step for step: states, covariances,
     NIS, errors and NEES agree to rounding (amplified a little by the near-perfect inertia
-    constraint; measured 4e-9 m on 200-s runs), on runs that start, see the occlusion and
-    (baseline) move far from their start."""
+    constraint; measured 4e-9 m on 200-s runs), on runs that start, see the occlusion, are
+    stopped as diverged, or never start."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
     s = load_scenario("hu2024").with_updates(
-        duration_s=90.0,
-        steady_state_window_s=[80.0, 90.0],
-        **{"sensor.noise.angular_rad": 2e-5, "estimator.tuning": tuning},
+        duration_s=duration,
+        steady_state_window_s=[duration - 10.0, duration],
+        **{"sensor.noise.angular_rad": noise, "estimator.tuning": tuning},
     )
-    sims = [simulate(s, run_seed(11, k)) for k in range(3)]
+    sims = [simulate(s, run_seed(11, k)) for k in range(runs)]
     meas, truths = [m for _, m in sims], [t for t, _ in sims]
     a = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="compiled")
     b = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="numpy")
-    assert (a["k0"] >= 0).all()
-    for key, atol in (("x", 1e-6), ("err", 1e-6), ("P", 1e-8), ("nis", 1e-5)):
-        assert np.array_equal(np.isfinite(a[key]), np.isfinite(b[key])), key
-        fin = np.isfinite(b[key])
-        assert np.allclose(a[key][fin], b[key][fin], rtol=1e-6, atol=atol), key
-    fin = np.isfinite(b["nees"])
-    assert fin.sum() > 100 and np.array_equal(np.isfinite(a["nees"]), fin)
-    assert np.allclose(a["nees"][fin], b["nees"][fin], rtol=1e-5)
-    assert np.array_equal(a["nis_dof"], b["nis_dof"])
+    assert np.array_equal(a["k0"], b["k0"])
     assert np.array_equal(a["diverged"], b["diverged"])
     assert np.array_equal(a["frame_flips"], b["frame_flips"])
+    assert np.array_equal(a["nis_dof"], b["nis_dof"])
+    if expect == "start":
+        assert (a["k0"] >= 0).all() and not a["diverged"].any()
+    elif expect == "diverge":
+        assert a["diverged"][:3].all() and not a["diverged"][3]
+    else:
+        assert a["k0"][0] >= 0 and a["k0"][1] < 0
+    # the diverging case (ekf-baseline with the curvature term, not a default) is so badly
+    # conditioned that rounding grows to 1e-5 within seconds and to 1e-3..0.3 after the
+    # occlusion, in both engines alike (a review measured it with fastmath on and off):
+    # there, values are compared before the occlusion (60 s) and 100x looser; the masks,
+    # starts and divergence epochs everywhere
+    loose = 100.0 if expect == "diverge" else 1.0
+    upto = a["t"] < 60.0 if expect == "diverge" else np.ones(len(a["t"]), dtype=bool)
+    for key, atol in (("x", 1e-6), ("err", 1e-6), ("P", 1e-8), ("nis", 1e-5)):
+        assert np.array_equal(np.isfinite(a[key]), np.isfinite(b[key])), key
+        va, vb = a[key][:, upto], b[key][:, upto]
+        fin = np.isfinite(vb)
+        assert np.allclose(va[fin], vb[fin], rtol=1e-6 * loose, atol=atol * loose), key
+    fin = np.isfinite(b["nees"])
+    assert np.array_equal(np.isfinite(a["nees"]), fin)
+    if expect != "diverge":
+        assert fin.sum() > 20
+        assert np.allclose(a["nees"][fin], b["nees"][fin], rtol=1e-5)
 
 
 def test_compiled_engine_refuses_what_it_does_not_cover():
@@ -621,16 +645,23 @@ def test_compiled_branch_following_equals_numpy(seed, which, need):
     xn, Pn, votes_n = x.copy(), P.copy(), np.zeros(1, dtype=np.int64)
     flips_n = np.zeros(1, dtype=np.int64)
     xc, Pc, votes_c = x[0].copy(), P[0].copy(), 0
+    f0 = x[0, 16:].reshape(N, 3).copy()  # first estimates = the features now
+    f0[0] = np.nan  # a feature without a first estimate
+    fn, fc = f0[None].copy(), f0.copy()
     qflips = rot.matrix_to_quat(hu._FLIPS)
     for step in range(need + 1):
         qm = np.full(4, np.nan) if step == 1 else q_meas  # one missing measurement
         xn, Pn, votes_n = hu._follow_dpacf_branch(
-            xn, Pn, qm[None], np.array([True]), lay, votes_n, need, flips_n
+            xn, Pn, qm[None], np.array([True]), lay, votes_n, need, flips_n, fn
         )
-        votes_c, _ = _hu_kernel._follow_branch(xc, Pc, qm, N, hu._FLIPS, qflips, votes_c, need)
+        votes_c, _ = _hu_kernel._follow_branch(xc, Pc, qm, N, hu._FLIPS, qflips, votes_c, need, fc)
         assert votes_c == votes_n[0]
     assert flips_n[0] == 1
     assert np.allclose(xc, xn[0], atol=1e-12) and np.allclose(Pc, Pn[0], atol=1e-12)
+    # the first estimates are turned with the features (the FEJ points stay consistent)
+    np.testing.assert_allclose(fc[1:], xc[16:].reshape(N, 3)[1:], atol=1e-12)
+    np.testing.assert_array_equal(fc, fn[0])
+    assert np.all(np.isnan(fc[0]))
     assert rot.quat_angle(rot.quat_multiply(xc[:4], rot.quat_conjugate(q_meas))) < 0.3
 
 
@@ -664,6 +695,14 @@ def test_mass_centre_from_rotation_finds_the_mass_centre():
         assert np.all(np.linalg.eigvalsh(cov) > 0)
         first = int(np.flatnonzero(np.all(np.isfinite(fe.R_GI[b]), axis=(-1, -2)))[0])
         assert hu.mass_centre_from_rotation(fe, b, first + 3, n) is None
+    # causal: data after epoch k do not change the estimate at k
+    k = 150
+    c1, cov1 = hu.mass_centre_from_rotation(fe, 0, k, n)
+    fe.p_L[:, k + 1 :] += 5.0
+    fe.R_GI[:, k + 1 :] = np.eye(3)
+    c2, cov2 = hu.mass_centre_from_rotation(fe, 0, k, n)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(cov1, cov2)
 
 
 def test_dpacf_emission_threshold_does_not_change_the_filter():

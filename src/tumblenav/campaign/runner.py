@@ -182,7 +182,7 @@ def _execute(
         def record(results) -> None:  # results computed elsewhere (Dask): store them here
             prog.advance(task, len(_store_results(store, base_seed, results)))
 
-        root = str(store.root)
+        root = str(store.root.resolve())
         if scheduler:
             _execute_dask(scenario, estimator_name, base_seed, chunks, scheduler, record)
         elif workers == 1 or len(chunks) == 1:
@@ -190,35 +190,15 @@ def _execute(
                 done = evaluate_and_store(scenario, estimator_name, base_seed, ks, root)
                 prog.advance(task, len(done))
         else:
-            pool = _local_pool(workers)
-            pending = {
-                pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
-                for ks in chunks
-            }
-            try:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                pending = {
+                    pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
+                    for ks in chunks
+                }
                 while pending:
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:
                         prog.advance(task, len(f.result()))
-            except BaseException:
-                for f in pending:
-                    f.cancel()
-                _POOLS.pop(workers, None)
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
-
-
-_POOLS: dict[int, ProcessPoolExecutor] = {}
-
-
-def _local_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool kept for the next campaign of this process (``reproduce`` runs several,
-    one per case): its workers have imported tumblenav and loaded the compiled kernels once.
-    Shut down at interpreter exit; replaced if a worker died."""
-    pool = _POOLS.get(workers)
-    if pool is None or getattr(pool, "_broken", False):
-        pool = _POOLS[workers] = ProcessPoolExecutor(max_workers=workers)
-    return pool
 
 
 def _execute_dask(

@@ -33,7 +33,7 @@ _SA, _SW, _SP, _SR, _SV, _SF = 0, 3, 6, 9, 12, 15
 _NQ, _NW, _NP, _NR, _NV, _NF = 0, 4, 7, 10, 13, 16
 
 
-@njit(cache=True, inline="always", fastmath=_FM)
+@njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
 def _qmul(a, b, out):
     """Hamilton product a (x) b of [x, y, z, w] quaternions (``rotations.quat_multiply``)."""
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
@@ -44,7 +44,7 @@ def _qmul(a, b, out):
     out[3] = aw * bw - (ax * bx + ay * by + az * bz)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _qmat(q, R):
     """``rotations.quat_to_matrix`` (normalises)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -63,7 +63,7 @@ def _qmat(q, R):
     R[2, 2] = 1 - 2 * (xx + yy)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _exp_quat(phi, out):
     """``rotations.exp_quat``."""
     ang = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
@@ -77,7 +77,7 @@ def _exp_quat(phi, out):
     out[3] = math.cos(0.5 * ang)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _log_quat(q, out):
     """``rotations.log_quat`` (normalises, scalar part made non-negative)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -93,7 +93,7 @@ def _log_quat(q, out):
     out[2] = k * vz
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _boxminus_q(q, q_hat, out):
     """``rotations.boxminus``: log(q (x) conj(q_hat))."""
     c = np.empty(4)
@@ -103,7 +103,7 @@ def _boxminus_q(q, q_hat, out):
     _log_quat(m, out)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _boxplus(x, dx):
     """``StateLayout.boxplus`` for this layout, in place: q <- exp(dtheta) (x) q."""
     e = np.empty(4)
@@ -114,7 +114,7 @@ def _boxplus(x, dx):
         x[i + 1] += dx[i]
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _mm_into(A, B, C):
     """C = A @ B for small dense matrices (explicit loops, zero entries of A skipped: a BLAS
     call per 3x3 or 9x9 product costs more than the product)."""
@@ -129,7 +129,7 @@ def _mm_into(A, B, C):
                     C[i, j] += a * B[k, j]
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _mm(A, B):
     """A @ B (a new array) for small dense matrices, see :func:`_mm_into`."""
     C = np.empty((A.shape[0], B.shape[1]))
@@ -137,7 +137,7 @@ def _mm(A, B):
     return C
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _inv3(S, out):
     """Inverse of a 3x3 matrix by cofactors (as ``ekf_dpacf._inv3``)."""
     a, b, c = S[0, 0], S[0, 1], S[0, 2]
@@ -150,7 +150,7 @@ def _inv3(S, out):
     out[2, 0], out[2, 1], out[2, 2] = C / det, -(a * h - b * g) / det, (a * e - b * d) / det
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _rk4(x, dt):
     """``ekf_dpacf.propagate_rotation``: RK4 of q and omega (Hu 2024 eq. 2, 21), in place."""
     q0 = x[_NQ : _NQ + 4].copy()
@@ -186,7 +186,7 @@ def _rk4(x, dt):
         x[_NW + i] = w0[i] + dt / 6 * (kw[0, i] + 2 * kw[1, i] + 2 * kw[2, i] + kw[3, i])
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _rotation_discrete(w, p, s_r2, dt, ws):
     """``ekf_dpacf.discretise(core_F(.., rotation_only=True), core_Qc[:9, :9], dt)``:
     Phi (eq. 38, 4th-order series) and Q_k (eq. 39, Van Loan to dt^3) of the 9-state block,
@@ -255,7 +255,7 @@ def _rotation_discrete(w, p, s_r2, dt, ws):
     return Phi, Qk
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _predict_cov(P, Phr, Qr, Pht, Qt):
     """P <- Phi P Phi^T + Q with Phi = blockdiag(Phr (9), Pht (6), I), for a symmetric P.
 
@@ -298,7 +298,7 @@ def _predict_cov(P, Phr, Qr, Pht, Qt):
             P[9 + i, 9 + j] += Qt[i, j]
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _nees(P, e):
     """``e^T P^-1 e`` by a Cholesky factorisation (LU solve if P is not positive definite)."""
     d = P.shape[0]
@@ -326,7 +326,7 @@ def _nees(P, e):
     return out
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _absorb(P, dx, HP, S, nu):
     """One 3-row block of the sequential update (Hu 2024 eq. 40-42, Joseph form evaluated
     as P - (HP)^T S^-1 (HP) for the optimal gain); returns the block's NIS."""
@@ -353,7 +353,7 @@ def _absorb(P, dx, HP, S, nu):
     return nis
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fej):
     """``ekf_dpacf._update_sequential`` for one run: the DPACF attitude (eq. 31), then each
     visible feature (eq. 32-35), all linearised at the prior. Returns (NIS, dof)."""
@@ -424,7 +424,7 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
     return nis, dof
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _constrain(x, P, curvature):
     """``ekf_dpacf.constrain_inertia`` for one run: c(p) = px + py + pz + px py pz = 0 as a
     near-perfect scalar pseudo-measurement, then |p_i| <= 0.999."""
@@ -466,7 +466,7 @@ def _constrain(x, P, curvature):
             P[j, i] = v
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _diverged(x, P, N, max_rate):
     """``ekf_dpacf._diverged`` for one run."""
     for v in x:
@@ -487,10 +487,11 @@ def _diverged(x, P, N, max_rate):
     return False
 
 
-@njit(cache=True, fastmath=_FM)
-def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need):
-    """``ekf_dpacf._follow_dpacf_branch`` for one run; returns the new vote count and whether
-    the state was turned."""
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need, f_first):
+    """``ekf_dpacf._follow_dpacf_branch`` for one run (the features' first estimates
+    ``f_first`` (N, 3) turned too); returns the new vote count and whether the state was
+    turned."""
     for i in range(4):
         if not np.isfinite(q_meas[i]):
             return votes, False  # no measurement: the streak is kept
@@ -528,13 +529,14 @@ def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need):
         x[_NW + a] *= fa
         for i in range(N):
             x[_NF + 3 * i + a] *= fa
+            f_first[i, a] *= fa
     for i in range(P.shape[0]):
         for j in range(P.shape[0]):
             P[i, j] *= sg[i] * sg[j]
     return 0, True
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def run_filter_kernel(
     t,
     p_L,
@@ -608,7 +610,7 @@ def run_filter_kernel(
                 use_att = use_dpacf and (k % att_every == 0)
                 if use_att:
                     votes, turned = _follow_branch(
-                        x, P, q_meas[b, k], N, flips, qflips, votes, flip_need
+                        x, P, q_meas[b, k], N, flips, qflips, votes, flip_need, f_first
                     )
                     if turned:
                         flip_count[b] += 1

@@ -371,7 +371,7 @@ def _initial_state(
             cov_frame = tun.p0_attitude_rad**2 * np.eye(3)
         R_LT = _R_LI_at(fe, b, k) @ rot.quat_to_matrix(q).T
         u = fe.usable[b, k]
-        kn = fe.known[b]
+        kn = fe.known_at[b, k]  # catalogued by the start (causal)
         g = fe.template_G[b]
         gbar = np.nanmean(g[kn], axis=0)  # mass centre guess: the feature centroid
         Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
@@ -609,7 +609,7 @@ def run_filter(
                 use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
             if use_dpacf and k % tun.attitude_meas_every == 0:
                 x, P, flip_votes = _follow_dpacf_branch(
-                    x, P, fe.q_TI[:, k], active, lay, flip_votes, tun.flip_epochs, flips
+                    x, P, fe.q_TI[:, k], active, lay, flip_votes, tun.flip_epochs, flips, f_first
                 )
             if np.isfinite(gate):
                 x, P, nis_k, dof_k, rej = _update(
@@ -679,7 +679,7 @@ _FLIPS = np.array(
 )
 
 
-def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
+def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips, f_first=None):
     """Keep the filter on the principal frame that the DPACF rule selects now.
 
     The DPACF frame is unique for a given inertia, but the identified inertia changes as
@@ -688,7 +688,8 @@ def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
     When the DPACF attitude and the filter's differ by such a turn for ``need`` consecutive
     measurements, the filter state is turned accordingly: the turn ``F`` is a symmetry of
     the torque-free model (``p`` is unchanged), so ``q <- F q``, ``omega <- F omega``,
-    ``f_i <- F f_i`` and ``P <- J P J^T`` are exact. The turns are counted.
+    ``f_i <- F f_i`` and ``P <- J P J^T`` are exact. The turns are counted. The features'
+    first estimates (``f_first``, (B, N, 3), FEJ linearisation points) are turned with them.
     """
     ok = active & np.all(np.isfinite(q_meas), axis=-1)
     if not ok.any():
@@ -718,6 +719,8 @@ def _follow_dpacf_branch(x, P, q_meas, active, lay, votes, need, flips):
         for i in range(N):
             J[:, sf0 + 3 * i : sf0 + 3 * i + 3, sf0 + 3 * i : sf0 + 3 * i + 3] = F
         P[b] = J @ P[b] @ np.swapaxes(J, -1, -2)
+        if f_first is not None:
+            f_first[b] = f_first[b] @ np.swapaxes(F, -1, -2)
         votes[b] = 0
         flips[b] += 1
     return x, P, votes

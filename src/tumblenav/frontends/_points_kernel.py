@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def triangulate_parallel_rotated(uv, obs, focal, baseline, cu, cv, sigma, R_LC):
     """Parallel-rig triangulation (Hu 2024 eq. 1, corrected) with its first-order covariance
     (``triangulation.triangulation_jacobian``), and both rotated into L.
@@ -81,7 +81,7 @@ def triangulate_parallel_rotated(uv, obs, focal, baseline, cu, cv, sigma, R_LC):
     return p_C, cov_C, p_L, cov_L, usable, one_cam, bad
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def kabsch_moments(p, g, w):
     """The weighted, centred cross-covariance ``H = sum w g p^T`` of a rigid alignment
     ``p ~ R g + o``, the weighted centroids and the lever-arm information
@@ -130,7 +130,7 @@ def kabsch_moments(p, g, w):
     return H, pc, gc, info, cnt, sw
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _qmul(a, b, out):
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]
@@ -140,7 +140,7 @@ def _qmul(a, b, out):
     out[3] = aw * bw - (ax * bx + ay * by + az * bz)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rate_fit(q, valid, h, dt):
     """``stereo_points.rates_from_G`` after its quaternion conversion: the symmetric
     least-squares slope of ``log(q(k+j) (x) conj(q(k)))`` over ``j = -h..h``.
@@ -186,7 +186,7 @@ def rate_fit(q, valid, h, dt):
     return omega
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def normal_equations_at(a, b, w, ok, delay, sel):
     """Running sums of the weighted least squares of Hu 2024 eq. 13, read at epochs ``sel``:
     ``N = sum w a^T a`` (8x8), ``r = sum w a^T b``, ``bb = sum w |b|^2`` and the count of
@@ -240,7 +240,7 @@ def normal_equations_at(a, b, w, ok, delay, sel):
     return N, r, bb, cnt
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def matrix_to_quat(R):
     """``rotations.matrix_to_quat`` for stacks (M,3,3) of rotation matrices: Shepperd's method
     (the largest of trace and diagonal picks the stable formula), normalised, scalar part
