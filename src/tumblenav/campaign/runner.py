@@ -87,6 +87,18 @@ def evaluate_and_store(
     return _store_results(CampaignStore(Path(root)), base_seed, results)
 
 
+def _warm_up(scenario: Scenario, estimator_name: str, base_seed: int) -> None:
+    """Run one short run in this process before forking the workers, so that they inherit
+    what it loaded (compiled kernels from numba's cache, lazily imported modules) instead of
+    each loading it again for every campaign. Best effort: a failure here changes nothing."""
+    try:
+        short = min(scenario.duration_s, 5.0)
+        sc = scenario.with_updates(duration_s=short, steady_state_window_s=[0.0, short])
+        evaluate_runs(sc, estimator_name, base_seed, [0])
+    except Exception:  # noqa: BLE001 - only a warm-up
+        pass
+
+
 def _short(exc: BaseException) -> str:
     tb = traceback.extract_tb(exc.__traceback__)
     where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
@@ -140,6 +152,8 @@ def run_campaign(
             batched = hasattr(est, "run_batch")
             chunk_size = max(1, min(128, -(-len(todo) // workers))) if batched else 1
         chunks = list(_chunks(todo, chunk_size))
+        if getattr(est, "compiled", False) and workers > 1 and len(chunks) > 1 and not scheduler:
+            _warm_up(scenario, estimator_name, base_seed)
         _execute(
             scenario,
             estimator_name,

@@ -1108,6 +1108,7 @@ class HuEKF:
     """Shared implementation of ekf-dpacf and ekf-baseline."""
 
     needs = "stereo feature tracks (stereo sensor)"
+    compiled = True  # numba kernels: campaigns warm them up before forking their workers
 
     def __init__(self, use_dpacf: bool) -> None:
         self.use_dpacf = use_dpacf
