@@ -24,6 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
+from tumblenav.frontends._points_kernel import _qmul  # Hamilton product, shared
+
 # Floating-point licence for the compiler: reassociation and fused multiply-add let it
 # vectorise the sums; NaN and inf semantics are kept (the divergence checks rely on them).
 _FM = {"reassoc", "contract", "arcp", "nsz"}
@@ -31,17 +33,6 @@ _FM = {"reassoc", "contract", "arcp", "nsz"}
 _SA, _SW, _SP, _SR, _SV, _SF = 0, 3, 6, 9, 12, 15
 # nominal-state offsets
 _NQ, _NW, _NP, _NR, _NV, _NF = 0, 4, 7, 10, 13, 16
-
-
-@njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
-def _qmul(a, b, out):
-    """Hamilton product a (x) b of [x, y, z, w] quaternions (``rotations.quat_multiply``)."""
-    ax, ay, az, aw = a[0], a[1], a[2], a[3]
-    bx, by, bz, bw = b[0], b[1], b[2], b[3]
-    out[0] = aw * bx + bw * ax + (ay * bz - az * by)
-    out[1] = aw * by + bw * ay + (az * bx - ax * bz)
-    out[2] = aw * bz + bw * az + (ax * by - ay * bx)
-    out[3] = aw * bw - (ax * bx + ay * by + az * bz)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")

@@ -535,6 +535,26 @@ def run_filter(
                 for b, tr in enumerate(truths)
             ]
         )
+
+    def pack() -> dict[str, Any]:
+        return {
+            "t": t,
+            "x": out_x,
+            "P": out_P,
+            "nis": nis,
+            "nis_dof": nis_dof,
+            "nees": nees,
+            "err": err,
+            "layout": lay,
+            "frontend": fe,
+            "k0": init.k0,
+            "rejected": rejected,
+            "diverged": diverged,
+            "x_true": xt,
+            "frame_flips": flips,
+            "dpacf_q_TI": fe_all.q_TI,
+        }
+
     uniform = bool(np.allclose(np.diff(t), dt_nom, rtol=1e-9, atol=0))
     compiled_ok = covered and uniform
     if engine == "compiled" and not uniform:
@@ -561,23 +581,7 @@ def run_filter(
             err if err is not None else empty(1), nees if nees is not None else empty(),
             diverged, flips,
         )  # fmt: skip
-        return {
-            "t": t,
-            "x": out_x,
-            "P": out_P,
-            "nis": nis,
-            "nis_dof": nis_dof,
-            "nees": nees,
-            "err": err,
-            "layout": lay,
-            "frontend": fe,
-            "k0": init.k0,
-            "rejected": rejected,
-            "diverged": diverged,
-            "x_true": xt,
-            "frame_flips": flips,
-            "dpacf_q_TI": fe_all.q_TI,
-        }
+        return pack()
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
     for k in range(n):
@@ -655,23 +659,7 @@ def run_filter(
             if k % nees_every == 0:  # NEES needs a d x d solve: sampled in campaigns
                 sol = np.linalg.solve(P[active], e[active][..., None])[..., 0]
                 nees[active, k] = np.sum(e[active] * sol, axis=1)
-    return {
-        "t": t,
-        "x": out_x,
-        "P": out_P,
-        "nis": nis,
-        "nis_dof": nis_dof,
-        "nees": nees,
-        "err": err,
-        "layout": lay,
-        "frontend": fe,
-        "k0": init.k0,
-        "rejected": rejected,
-        "diverged": diverged,
-        "x_true": xt,
-        "frame_flips": flips,
-        "dpacf_q_TI": fe_all.q_TI,
-    }
+    return pack()
 
 
 _FLIPS = np.array(

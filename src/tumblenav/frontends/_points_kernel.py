@@ -132,6 +132,7 @@ def kabsch_moments(p, g, w):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _qmul(a, b, out):
+    """Hamilton product a (x) b of [x, y, z, w] quaternions (``rotations.quat_multiply``)."""
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]
     out[0] = aw * bx + bw * ax + (ay * bz - az * by)
