@@ -71,13 +71,14 @@ class Truth:
     @property
     def features_L(self) -> Array:
         """(n,N,3) m: feature positions relative to the chaser, in L (Hu 2024 eq. 32)."""
-        return self.r_L[:, None, :] + np.einsum("tij,nj->tni", self.R_LT, self.features_T)
+        # (t,N,3): R_LT(t) f_n, as one stacked matmul (einsum without a path is 10x slower)
+        return self.r_L[:, None, :] + self.features_T @ np.swapaxes(self.R_LT, -1, -2)
 
     @property
     def features_C(self) -> Array:
         """(n,N,3) m: feature positions in the rig frame C (rig origin at the chaser CM)."""
         R_CL = rot.quat_to_matrix(self.q_CL)
-        return np.einsum("tij,tnj->tni", R_CL, self.features_L)
+        return self.features_L @ np.swapaxes(R_CL, -1, -2)  # (t,N,3): R_CL(t) p_n(t)
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
         n_feat = self.features_T.shape[0]
@@ -377,7 +378,7 @@ def visibility(scenario: Scenario, truth: Truth, rig: sensors.StereoRig) -> NDAr
         vis &= sensors.loss_from_mask(t, occ.loss_from_s)[:, None, None]
     if occ.self_occlusion:
         R_CL = rot.quat_to_matrix(truth.q_CL)
-        n_C = np.einsum("tij,tjk,nk->tni", R_CL, truth.R_LT, truth.normals_T)
+        n_C = truth.normals_T @ np.swapaxes(R_CL @ truth.R_LT, -1, -2)  # (t,N,3) in C
         centres = np.stack([rig.left.p_CkinC, rig.right.p_CkinC])
         vis &= sensors.self_occlusion_mask(truth.features_C, n_C, centres)
     return vis

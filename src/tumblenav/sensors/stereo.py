@@ -285,7 +285,7 @@ def _points_in_cameras(rig: StereoRig, p_inC: ArrayLike) -> Array:
     if p.ndim < 2 or p.shape[-1] != 3:
         raise ValueError(f"p_inC must have shape (..., N, 3), got {p.shape}")
     rel = p[..., None, :, :] - rig.centres_inC[:, None, :]  # (..., 2, N, 3)
-    return np.einsum("kij,...knj->...kni", rig.R_CkC, rel)
+    return rel @ np.swapaxes(rig.R_CkC, -1, -2)  # (..., 2, N, 3): R_CkC[k] rel
 
 
 def project(rig: StereoRig, p_inC: ArrayLike) -> tuple[Array, BoolArray]:
