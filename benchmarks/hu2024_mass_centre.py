@@ -30,7 +30,7 @@ def main() -> None:
     tun = hu.parse_tuning(sc.estimator.tuning)
     n = sc.chaser.orbit.mean_motion_rad_s
     sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in range(args.runs)]
-    fe = hu.frontend([m for _, m in sims], tun)
+    fe = hu.filter_view(hu.frontend([m for _, m in sims], tun), tun.max_dpacf_sigma_rad)
     init = hu._initial_state(fe, tun, True, hu.layout(fe.usable.shape[2]), n)
     errs, nees = [], []
     for b, (truth, _) in enumerate(sims):

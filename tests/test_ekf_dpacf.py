@@ -499,7 +499,7 @@ def test_sequential_update_equals_batch_update():
     s = load_scenario("hu2024").with_updates(duration_s=60.0, steady_state_window_s=[50.0, 60.0])
     _, meas = simulate(s, run_seed(4, 0))
     tun = hu.parse_tuning({})
-    fe = hu.frontend([meas], tun)
+    fe = hu.filter_view(hu.frontend([meas], tun), tun.max_dpacf_sigma_rad)
     lay = hu.layout(fe.usable.shape[2])
     init = hu._initial_state(fe, tun, True, lay)
     k = int(init.k0[0])

@@ -344,11 +344,7 @@ def _initial_state(
 ) -> _Init:
     B, n, N = fe.usable.shape
     ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
-    ready &= fe.usable.sum(axis=-1) >= 3
-    # the front end gives DPACF frames from dpacf_emit_sigma_rad on; the filter waits for one
-    # whose 1-sigma (largest axis) is below max_dpacf_sigma_rad
-    sig_frame = np.sqrt(np.linalg.eigvalsh(np.nan_to_num(fe.cov_frame, nan=1e6))[..., -1])
-    ready &= sig_frame < tun.max_dpacf_sigma_rad
+    ready &= fe.usable.sum(axis=-1) >= 3  # fe: the filter's view (filter_view), gated frames
     k0 = np.where(ready.any(axis=1), np.argmax(ready, axis=1), -1)
     x0 = np.zeros((B, lay.nominal_dim))
     P0 = np.zeros((B, lay.dim, lay.dim))
