@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-from tumblenav.frontends._points_kernel import _qmul  # Hamilton product, shared
+from tumblenav.frontends._points_kernel import _qmul, matrix_to_quat  # shared
 
 # Floating-point licence for the compiler: reassociation and fused multiply-add let it
 # vectorise the sums; NaN and inf semantics are kept (the divergence checks rely on them).
@@ -528,6 +528,86 @@ def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need, f_first):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
+def _turn(x, P, F, N, f_first):
+    """``ekf_dpacf._turn_state`` for one run: re-express the state in a frame turned by the
+    rotation ``F`` (new = F old) -- q <- F q, omega <- F omega, f_i <- F f_i, the features'
+    first estimates too, and P <- J P J^T with F on the attitude, rate and feature blocks."""
+    d = P.shape[0]
+    qF = matrix_to_quat(F.reshape(1, 3, 3))[0]
+    q = x[_NQ : _NQ + 4].copy()
+    _qmul(qF, q, x[_NQ : _NQ + 4])
+    v = np.empty(3)
+    nb = 2 + N
+    for blk in range(nb):
+        if blk == 0:
+            o = -1
+        elif blk == 1:
+            o = _NW
+        else:
+            o = _NF + 3 * (blk - 2)
+        if o >= 0:
+            for a in range(3):
+                v[a] = F[a, 0] * x[o] + F[a, 1] * x[o + 1] + F[a, 2] * x[o + 2]
+            x[o : o + 3] = v
+    for i in range(N):
+        for a in range(3):
+            v[a] = F[a, 0] * f_first[i, 0] + F[a, 1] * f_first[i, 1] + F[a, 2] * f_first[i, 2]
+        f_first[i] = v
+    W = np.empty((3, d))
+    for blk in range(nb):  # rows: P[blk, :] <- F P[blk, :]
+        o = _SA if blk == 0 else (_SW if blk == 1 else _SF + 3 * (blk - 2))
+        for a in range(3):
+            for j in range(d):
+                W[a, j] = F[a, 0] * P[o, j] + F[a, 1] * P[o + 1, j] + F[a, 2] * P[o + 2, j]
+        P[o : o + 3, :] = W
+    for blk in range(nb):  # columns: P[:, blk] <- P[:, blk] F^T
+        o = _SA if blk == 0 else (_SW if blk == 1 else _SF + 3 * (blk - 2))
+        for i in range(d):
+            c0, c1, c2 = P[i, o], P[i, o + 1], P[i, o + 2]
+            for a in range(3):
+                P[i, o + a] = F[a, 0] * c0 + F[a, 1] * c1 + F[a, 2] * c2
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _consider_cov(x, P, C, N, out):
+    """``ekf_dpacf.frame_consider_cov`` for one run: out = P + Ju C Ju^T, Ju = [I; -[w x];
+    0; 0; 0; -[f_i x]] (the frame-rotation Jacobian of ``ekf_dpacf.frame_jacobian``)."""
+    out[:, :] = P
+    nb = 2 + N
+    J = np.zeros((nb, 3, 3))
+    offs = np.empty(nb, dtype=np.int64)
+    for a in range(3):
+        J[0, a, a] = 1.0
+    offs[0] = _SA
+    for blk in range(1, nb):
+        o = _NW if blk == 1 else _NF + 3 * (blk - 2)
+        offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
+        w0, w1, w2 = x[o], x[o + 1], x[o + 2]
+        # -[w x]
+        J[blk, 0, 1], J[blk, 0, 2] = w2, -w1
+        J[blk, 1, 0], J[blk, 1, 2] = -w2, w0
+        J[blk, 2, 0], J[blk, 2, 1] = w1, -w0
+    JC = np.zeros((nb, 3, 3))
+    for blk in range(nb):
+        for a in range(3):
+            for c in range(3):
+                JC[blk, a, c] = (
+                    J[blk, a, 0] * C[0, c] + J[blk, a, 1] * C[1, c] + J[blk, a, 2] * C[2, c]
+                )
+    for bi in range(nb):
+        oi = offs[bi]
+        for bj in range(nb):
+            oj = offs[bj]
+            for a in range(3):
+                for c in range(3):
+                    out[oi + a, oj + c] += (
+                        JC[bi, a, 0] * J[bj, c, 0]
+                        + JC[bi, a, 1] * J[bj, c, 1]
+                        + JC[bi, a, 2] * J[bj, c, 2]
+                    )
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def run_filter_kernel(
     t,
     p_L,
@@ -563,11 +643,16 @@ def run_filter_kernel(
     nees,
     diverged,
     flip_count,
+    consider,
+    R_GT,
+    cov_frame,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
     (B,n,nom) the truth in the filter's frame or an empty array, ``out_x``/``out_P`` empty
-    (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive)."""
+    (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive).
+    ``consider``: the 'consider' frame model, with the front end's frames ``R_GT`` (B,n,3,3,
+    NaN where none) and their covariances ``cov_frame`` (B,n,3,3, finite)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     keep = out_x.shape[1] > 0
@@ -580,6 +665,9 @@ def run_filter_kernel(
         f_first = np.full((N, 3), np.nan)
         e = np.empty(d)
         ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
+        R_used = np.eye(3)  # 'consider': the frame the state is in, and its covariance
+        C_used = np.zeros((3, 3))
+        P_rep = np.empty((d, d))
         for k in range(n):
             if k > 0 and active:
                 dt = t[k] - t[k - 1]
@@ -597,6 +685,13 @@ def run_filter_kernel(
                 x[:] = x0[b]
                 P[:, :] = P0[b]
                 active = True
+            if active and consider and np.all(np.isfinite(R_GT[b, k])):
+                C_used[:, :] = cov_frame[b, k]
+                if start:
+                    R_used[:, :] = R_GT[b, k]
+                elif np.any(R_GT[b, k] != R_used):  # re-solved: F = R_T'G R_GT
+                    _turn(x, P, _mm(R_GT[b, k].T.copy(), R_used), N, f_first)
+                    R_used[:, :] = R_GT[b, k]
             if active:
                 use_att = use_dpacf and (k % att_every == 0)
                 if use_att:
@@ -627,13 +722,19 @@ def run_filter_kernel(
                     nis_dof[b, k] = dof_k
                     if dof_k > 0:
                         nis[b, k] = nis_k
+            report = active and (keep or (truth and k % nees_every == 0))
+            if report:
+                if consider:
+                    _consider_cov(x, P, C_used, N, P_rep)
+                else:
+                    P_rep[:, :] = P
             if keep and active:
                 out_x[b, k] = x
-                out_P[b, k] = P
+                out_P[b, k] = P_rep
             if truth and active:
                 _boxminus_q(xt[b, k, 0:4], x[0:4], e[0:3])
                 for i in range(3, d):
                     e[i] = xt[b, k, i + 1] - x[i + 1]
                 err[b, k] = e
                 if k % nees_every == 0:
-                    nees[b, k] = _nees(P, e)
+                    nees[b, k] = _nees(P_rep, e)
