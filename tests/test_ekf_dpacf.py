@@ -540,6 +540,8 @@ def test_frame_measurement_and_its_jacobian():
         (True, {}, 2e-5, 90.0, 3, "start"),
         (False, {}, 2e-5, 90.0, 3, "start"),
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
+        # the paper's white DPACF attitude noise instead of the consider frame model
+        (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
         # ekf-baseline with the curvature term diverges in runs 0-2 of these seeds
         (False, {"constraint_curvature": True}, 1e-6, 200.0, 4, "diverge"),
         # at 5e-5 rad run 1 never gets a DPACF frame good enough to start
@@ -663,6 +665,85 @@ def test_compiled_branch_following_equals_numpy(seed, which, need):
     np.testing.assert_array_equal(fc, fn[0])
     assert np.all(np.isnan(fc[0]))
     assert rot.quat_angle(rot.quat_multiply(xc[:4], rot.quat_conjugate(q_meas))) < 0.3
+
+
+@given(seed=seeds, n_feat=st.integers(1, 4))
+def test_frame_jacobian_against_finite_differences(seed, n_feat):
+    """``frame_jacobian`` is d(turn(x, exp(u)) boxminus x)/du: re-expressing the state in a
+    frame turned by a small rotation u (``_turn_state``) moves the error state by Ju u."""
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(n_feat)
+    x = np.zeros((1, lay.nominal_dim))
+    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
+    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    Ju = hu.frame_jacobian(x, lay)[0]
+    eps = 1e-6
+    for a in range(3):
+        cols = []
+        for sgn in (1.0, -1.0):
+            xt, P = x.copy(), np.eye(lay.dim)[None].copy()
+            hu._turn_state(xt, P, np.array([0]), rot.exp_map(sgn * eps * np.eye(3)[a])[None], lay)
+            cols.append(lay.boxminus(xt, x)[0])
+        np.testing.assert_allclose((cols[0] - cols[1]) / (2 * eps), Ju[:, a], atol=1e-7)
+
+
+@given(seed=seeds, n_feat=st.integers(1, 4), half=st.integers(-1, 2))
+def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
+    """Kernel ``_turn`` (any rotation, or a half turn) and ``_consider_cov`` (frame covariance
+    and branch mixture) against ``_turn_state`` and ``frame_consider_cov``; turning back
+    restores the state exactly."""
+    from tumblenav.estimators import _hu_kernel
+
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(n_feat)
+    x = np.zeros((1, lay.nominal_dim))
+    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
+    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    A = rng.normal(size=(lay.dim, lay.dim))
+    P = (A @ A.T)[None]
+    F = hu._FLIPS[half] if half >= 0 else rot.quat_to_matrix(rng.normal(size=4))
+    f_first = rng.normal(size=(1, n_feat, 3))
+    xn, Pn, fn = x.copy(), P.copy(), f_first.copy()
+    hu._turn_state(xn, Pn, np.array([0]), F[None], lay, fn)
+    xc, Pc, fc = x[0].copy(), P[0].copy(), f_first[0].copy()
+    _hu_kernel._turn(xc, Pc, F, n_feat, fc)
+    np.testing.assert_allclose(xc, xn[0], atol=1e-12)
+    np.testing.assert_allclose(Pc, Pn[0], rtol=1e-12, atol=1e-10)
+    np.testing.assert_allclose(fc, fn[0], atol=1e-12)
+    hu._turn_state(xn, Pn, np.array([0]), F.T[None], lay, fn)
+    np.testing.assert_allclose(
+        rot.quat_angle(rot.quat_multiply(xn[0, :4], rot.quat_conjugate(x[0, :4]))), 0.0, atol=1e-7
+    )
+    np.testing.assert_allclose(xn[0, 4:], x[0, 4:], atol=1e-12)
+    np.testing.assert_allclose(Pn, P, rtol=1e-12, atol=1e-10)
+    B = rng.normal(size=(3, 3))
+    C = B @ B.T
+    p_turn = rng.uniform(0, 0.3, size=3)
+    ref = hu.frame_consider_cov(x, P, C[None], lay, p_turn[None])[0]
+    out = np.empty_like(ref)
+    _hu_kernel._consider_cov(x[0], P[0], C, p_turn, hu._FLIPS, n_feat, out)
+    np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-10)
+
+
+def test_branch_mixture_cov_covers_the_half_turns():
+    """On the branch turned about axis a the error is Delta = [+-pi e_a; F w - w; 0; 0; 0;
+    F f - f]; the mixture term is the average of Delta Delta^T over the two signs, times p."""
+    rng = np.random.default_rng(5)
+    lay = hu.layout(2)
+    x = np.zeros((1, lay.nominal_dim))
+    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
+    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    for a in range(3):
+        p = np.zeros((1, 3))
+        p[0, a] = 0.25
+        xt, P = x.copy(), np.eye(lay.dim)[None].copy()
+        hu._turn_state(xt, P, np.array([0]), hu._FLIPS[a][None], lay)
+        d = lay.boxminus(xt, x)[0]
+        assert np.isclose(abs(d[a]), np.pi) and np.allclose(np.delete(d[:3], a), 0.0, atol=1e-9)
+        d_other = d.copy()
+        d_other[:3] *= -1
+        expect = 0.25 * 0.5 * (np.outer(d, d) + np.outer(d_other, d_other))
+        np.testing.assert_allclose(hu.branch_mixture_cov(x, p, lay)[0], expect, atol=1e-9)
 
 
 def test_mass_centre_from_rotation_finds_the_mass_centre():

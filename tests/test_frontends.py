@@ -525,6 +525,48 @@ def test_principal_frame_degenerate_first_component_and_stacks():
         principal_frame(np.full((3, 3), np.nan))
 
 
+def test_branch_probabilities_match_sampling_near_the_sign_rules():
+    """``branch_probabilities`` (first order) against the frequency with which a frame error
+    u ~ N(0, C) makes the true inertia's DPACF the half turn about x_T, y_T or z_T. Frames
+    are drawn at random, with 1-sigma 0.5-3 deg, and kept when some probability is > 2%
+    (i.e. near a rule's boundary); tolerance 0.03 absolute (sampling: 4000 draws)."""
+    from tumblenav.frontends.inertia import branch_probabilities
+
+    rng = np.random.default_rng(11)
+    lam = np.array([8.0, 5.0, 4.0])
+    checked = 0
+    while checked < 12:
+        Rg = rot.quat_to_matrix(rng.normal(size=4))
+        R = principal_frame(Rg @ np.diag(lam) @ Rg.T)
+        A = rng.normal(size=(3, 3)) * np.radians(rng.uniform(0.5, 3.0))
+        C = A @ A.T
+        p = branch_probabilities(R, C)
+        if p.max() < 0.02:
+            continue
+        u = rng.multivariate_normal(np.zeros(3), C, size=4000)
+        Rt = R[None] @ rot.exp_map(-u)
+        Rtrue = principal_frame(Rt @ np.diag(lam) @ np.swapaxes(Rt, -1, -2))
+        s = np.sign(np.diagonal(np.swapaxes(R, -1, -2)[None] @ Rtrue, axis1=-2, axis2=-1))
+        freq = [
+            np.mean((s[:, 0] > 0) & (s[:, 1] < 0)),
+            np.mean((s[:, 0] < 0) & (s[:, 1] > 0)),
+            np.mean((s[:, 0] < 0) & (s[:, 1] < 0)),
+        ]
+        assert np.allclose(p, freq, atol=0.03), (p, freq)
+        checked += 1
+    # far from every boundary, and without a frame
+    assert np.allclose(branch_probabilities(np.eye(3), 1e-6 * np.eye(3)), 0.0)
+    # the joint flip of both rules: Owen's-T bivariate normal CDF against scipy's
+    from scipy import stats
+
+    from tumblenav.frontends.inertia import _bivariate_normal_cdf
+
+    for h, k, r in rng.uniform([-2.5, -2.5, -0.95], [0.0, 0.0, 0.95], size=(8, 3)):
+        ref = stats.multivariate_normal([0, 0], [[1, r], [r, 1]]).cdf([h, k])
+        assert abs(_bivariate_normal_cdf(np.array(h), np.array(k), np.array(r)) - ref) < 1e-6
+    assert np.all(branch_probabilities(np.full((3, 3), np.nan), np.eye(3)) == 0.0)
+
+
 # ------------------------------------------- compiled loops of the stereo-points front end
 
 

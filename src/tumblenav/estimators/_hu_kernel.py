@@ -569,9 +569,10 @@ def _turn(x, P, F, N, f_first):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _consider_cov(x, P, C, N, out):
+def _consider_cov(x, P, C, p_turn, flips, N, out):
     """``ekf_dpacf.frame_consider_cov`` for one run: out = P + Ju C Ju^T, Ju = [I; -[w x];
-    0; 0; 0; -[f_i x]] (the frame-rotation Jacobian of ``ekf_dpacf.frame_jacobian``)."""
+    0; 0; 0; -[f_i x]] (the frame-rotation Jacobian of ``ekf_dpacf.frame_jacobian``), plus
+    the half turns' mixture ``ekf_dpacf.branch_mixture_cov`` (probabilities ``p_turn``)."""
     out[:, :] = P
     nb = 2 + N
     J = np.zeros((nb, 3, 3))
@@ -605,6 +606,22 @@ def _consider_cov(x, P, C, N, out):
                         + JC[bi, a, 1] * J[bj, c, 1]
                         + JC[bi, a, 2] * J[bj, c, 2]
                     )
+    d = P.shape[0]
+    v = np.zeros(d)
+    for t in range(3):
+        pt = p_turn[t]
+        if not pt > 0.0:
+            continue
+        for blk in range(1, nb):  # v = F w - w, F f_i - f_i (F diagonal)
+            o = _NW if blk == 1 else _NF + 3 * (blk - 2)
+            for a in range(3):
+                v[offs[blk] + a] = (flips[t, a, a] - 1.0) * x[o + a]
+        for i in range(3, d):
+            vi = pt * v[i]
+            if vi != 0.0:
+                for j in range(3, d):
+                    out[i, j] += vi * v[j]
+        out[_SA + t, _SA + t] += pt * math.pi * math.pi
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -646,13 +663,15 @@ def run_filter_kernel(
     consider,
     R_GT,
     cov_frame,
+    p_turn,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
     (B,n,nom) the truth in the filter's frame or an empty array, ``out_x``/``out_P`` empty
     (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive).
     ``consider``: the 'consider' frame model, with the front end's frames ``R_GT`` (B,n,3,3,
-    NaN where none) and their covariances ``cov_frame`` (B,n,3,3, finite)."""
+    NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite) and the probabilities
+    of their half turns ``p_turn`` (B,n,3)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     keep = out_x.shape[1] > 0
@@ -667,6 +686,7 @@ def run_filter_kernel(
         ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
         R_used = np.eye(3)  # 'consider': the frame the state is in, and its covariance
         C_used = np.zeros((3, 3))
+        p_used = np.zeros(3)
         P_rep = np.empty((d, d))
         for k in range(n):
             if k > 0 and active:
@@ -687,6 +707,7 @@ def run_filter_kernel(
                 active = True
             if active and consider and np.all(np.isfinite(R_GT[b, k])):
                 C_used[:, :] = cov_frame[b, k]
+                p_used[:] = p_turn[b, k]
                 if start:
                     R_used[:, :] = R_GT[b, k]
                 elif np.any(R_GT[b, k] != R_used):  # re-solved: F = R_T'G R_GT
@@ -725,7 +746,7 @@ def run_filter_kernel(
             report = active and (keep or (truth and k % nees_every == 0))
             if report:
                 if consider:
-                    _consider_cov(x, P, C_used, N, P_rep)
+                    _consider_cov(x, P, C_used, p_used, flips, N, P_rep)
                 else:
                     P_rep[:, :] = P
             if keep and active:

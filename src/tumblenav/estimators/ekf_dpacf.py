@@ -46,7 +46,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends import stereo_points
-from tumblenav.frontends.inertia import inertia_ratios, principal_frame
+from tumblenav.frontends.inertia import branch_probabilities, inertia_ratios, principal_frame
 
 Array = NDArray[np.float64]
 
@@ -139,6 +139,12 @@ class HuTuning(BaseModel):
         "G-attitude part, and adds the frame's covariance to the covariance it reports "
         "(beyond the paper, see frame_consider_cov); default: 'consider' for ekf-dpacf with "
         "dpacf_measurement 'attitude', else 'white'",
+    )
+    branch_mixture: bool = Field(
+        True,
+        description="with dpacf_frame_error 'consider': the reported covariance also holds "
+        "the half turns of the frame, weighted by the probability that the true inertia "
+        "selects them (frontends.inertia.branch_probabilities; beyond the paper)",
     )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
@@ -480,7 +486,9 @@ def frame_jacobian(x: Array, lay: StateLayout) -> Array:
     return Ju
 
 
-def frame_consider_cov(x: Array, P: Array, cov_frame: Array, lay: StateLayout) -> Array:
+def frame_consider_cov(
+    x: Array, P: Array, cov_frame: Array, lay: StateLayout, p_turn: Array | None = None
+) -> Array:
     """The covariance the filter reports with the 'consider' frame model (beyond the paper).
 
     The filter's state is expressed in the front end's DPACF frame, whose error ``u`` against
@@ -492,9 +500,41 @@ def frame_consider_cov(x: Array, P: Array, cov_frame: Array, lay: StateLayout) -
     docs/results/hu2024.md). Here the filter measures only the white G-attitude part and
     the frame's error is a consider parameter: the error against the truth is the filter's
     error in its frame plus ``Ju u``, independent to first order, so the reported covariance
-    is ``P + Ju cov_frame Ju^T`` (:func:`frame_jacobian`)."""
+    is ``P + Ju cov_frame Ju^T`` (:func:`frame_jacobian`); with ``p_turn`` (B, 3) plus the
+    half turns of the frame, :func:`branch_mixture_cov`."""
     Ju = frame_jacobian(x, lay)
-    return P + Ju @ np.nan_to_num(cov_frame) @ np.swapaxes(Ju, -1, -2)
+    out = P + Ju @ np.nan_to_num(cov_frame) @ np.swapaxes(Ju, -1, -2)
+    if p_turn is not None:
+        out = out + branch_mixture_cov(x, p_turn, lay)
+    return out
+
+
+def branch_mixture_cov(x: Array, p_turn: Array, lay: StateLayout) -> Array:
+    """``sum_a p_a M_a`` (B, d, d): the second moment, about the filter's estimate, of the
+    state on the frame turned by a half turn about T's axis ``a`` (probability ``p_a``,
+    ``frontends.inertia.branch_probabilities``; beyond the paper).
+
+    The sign rules of the DPACF (Hu 2024 eq. 17) make the posterior bimodal near their
+    boundary: the estimate is on one branch, the truth may be on the other. On the turned
+    branch the error is ``Delta_a = [+-pi e_a; F_a w - w; 0; 0; 0; F_a f_i - f_i]`` (the
+    sign of the half-turn rotation vector is arbitrary), so the mixture's covariance about
+    the estimate (its mode) is ``P + sum_a p_a M_a`` with ``M_a`` the average of the two
+    signs' ``Delta Delta^T``: ``pi^2 e_a e_a^T`` on the attitude plus ``v v^T`` for the rest."""
+    B = x.shape[0]
+    N = (lay.nominal_dim - lay.nom("features").start) // 3
+    sa = lay.err("attitude")
+    w = x[:, lay.nom("rate")]
+    f = x[:, lay.nom("features")].reshape(B, N, 3)
+    out = np.zeros((B, lay.dim, lay.dim))
+    for a in range(3):
+        F = _FLIPS[a]
+        v = np.zeros((B, lay.dim))
+        v[:, lay.err("rate")] = w @ F.T - w
+        v[:, lay.err("features")] = (f @ F.T - f).reshape(B, -1)
+        pa = p_turn[:, a, None, None]
+        out += pa * (v[:, :, None] * v[:, None, :])
+        out[:, sa.start + a, sa.start + a] += p_turn[:, a] * np.pi**2
+    return out
 
 
 def _turn_state(x, P, b, F, lay, f_first=None):
@@ -520,13 +560,15 @@ def _turn_state(x, P, b, F, lay, f_first=None):
         f_first[b] = f_first[b] @ np.swapaxes(F, -1, -2)
 
 
-def _reframe(x, P, R_GT, cov_frame, R_used, C_used, active, lay, f_first=None):
+def _reframe(x, P, R_GT, cov_frame, p_turn, R_used, C_used, p_used, active, lay, f_first=None):
     """'consider' frame model: when the front end re-solves its DPACF frame (``R_GT`` (B,3,3),
     NaN where there is none), re-express the state in the new frame (:func:`_turn_state` with
     ``F = R_T'G R_GT``, including the half turns of a branch change). ``R_used``, ``C_used``
-    (B,3,3): the frame each run's state is in and its covariance; updated in place."""
+    (B,3,3), ``p_used`` (B,3): the frame each run's state is in, its covariance and its
+    half-turn probabilities (``p_turn``); updated in place."""
     ok = active & np.all(np.isfinite(R_GT), axis=(-1, -2))
     C_used[ok] = cov_frame[ok]
+    p_used[ok] = p_turn[ok]
     if not ok.any():
         return
     R_new = np.where(ok[:, None, None], R_GT, np.eye(3))
@@ -589,6 +631,9 @@ def run_filter(
     B, n, N = fe.usable.shape
     lay = layout(N)
     init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider)
+    p_turn = np.zeros((B, n, 3))
+    if consider and tun.branch_mixture:
+        p_turn = branch_probabilities(fe.R_GT, fe.cov_frame)
     d = lay.dim
     x = np.tile(_neutral_state(lay), (B, 1))
     P = np.tile(np.eye(d), (B, 1, 1))
@@ -666,13 +711,14 @@ def run_filter(
             _neutral_state(lay), out_x if keep_history else empty(1),
             out_P if keep_history else empty(1, 1), nis, nis_dof,
             err if err is not None else empty(1), nees if nees is not None else empty(),
-            diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame),
+            diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn,
         )  # fmt: skip
         return pack()
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
     R_used = np.full((B, 3, 3), np.nan)  # 'consider': the frame each run's state is in
     C_used = np.zeros((B, 3, 3))  # and its covariance
+    p_used = np.zeros((B, 3))  # and the probabilities of its half turns
     for k in range(n):
         if k > 0:
             dt = t[k] - t[k - 1]
@@ -698,8 +744,8 @@ def run_filter(
             active |= start
         if active.any():
             if consider:
-                _reframe(x, P, fe.R_GT[:, k], fe.cov_frame[:, k], R_used, C_used, active, lay,
-                         f_first)  # fmt: skip
+                _reframe(x, P, fe.R_GT[:, k], fe.cov_frame[:, k], p_turn[:, k], R_used, C_used,
+                         p_used, active, lay, f_first)  # fmt: skip
             if tun.dpacf_measurement == "frame":
                 use_att = "frame" if use_dpacf and k % tun.frame_meas_every == 0 else False
             else:
@@ -745,7 +791,7 @@ def run_filter(
             rejected += np.where(active, rej, 0)
         P_rep = P
         if consider and active.any() and (keep_history or k % nees_every == 0):
-            P_rep = frame_consider_cov(x, P, C_used, lay)
+            P_rep = frame_consider_cov(x, P, C_used, lay, p_used)
         if keep_history:
             out_x[active, k] = x[active]
             out_P[active, k] = P_rep[active]

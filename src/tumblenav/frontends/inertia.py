@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import special, stats
 
 Array = NDArray[np.float64]
 
@@ -442,3 +443,95 @@ def principal_frame(inertia_G: ArrayLike) -> Array:
     r2 = np.where(s2 < 0.0, -r2, r2)
     r3 = np.cross(r1, r2)
     return np.stack([r1, r2, r3], axis=-1)
+
+
+def _bivariate_normal_cdf(h: Array, k: Array, rho: Array) -> Array:
+    """``P(Y1 < h, Y2 < k)`` for standard normals with correlation ``rho``, for ``h, k <= 0``,
+    vectorised through Owen's T function (Owen 1956, eq. 2.1; scipy has no vectorised
+    bivariate normal CDF)."""
+    h = np.minimum(h, -1e-12)
+    k = np.minimum(k, -1e-12)
+    rho = np.clip(rho, -1 + 1e-12, 1 - 1e-12)
+    s = np.sqrt(1.0 - rho * rho)
+    out = (
+        0.5 * stats.norm.cdf(h)
+        + 0.5 * stats.norm.cdf(k)
+        - special.owens_t(h, (k - rho * h) / (h * s))
+        - special.owens_t(k, (h - rho * k) / (k * s))
+    )
+    return np.clip(out, 0.0, np.minimum(stats.norm.cdf(h), stats.norm.cdf(k)))
+
+
+def branch_probabilities(R_GT: ArrayLike, cov_frame: ArrayLike) -> Array:
+    """Probability that the *true* inertia's DPACF frame is the half turn of ``R_GT`` about
+    T's x, y or z axis: (..., 3) (beyond the paper).
+
+    :func:`principal_frame` is unique for a given inertia, but its sign rules are
+    discontinuous: when the identified axes lie within their error of a rule's boundary, the
+    true inertia may select the frame turned by 180 degrees. With the frame error ``u`` (in
+    T, covariance ``C = cov_frame``; the true axes are ``r_i + r_i x (R_GT u)`` to first
+    order), each rule's margin moves by a linear function ``a^T u`` of ``u``:
+
+    * rule 2 (``r1 . x_G > 0``): margin ``|r1_x|``, ``a = R_TG (x_G x r1)`` (times the
+      sign of ``r1_x``); a flip turns r1 and r3: the half turn about y_T;
+    * rule 3 (largest component of ``r2`` positive, index k): for each component j of the
+      opposite sign, margin ``|r2_k| - |r2_j|``, ``a = s_k R_TG ((e_k + e_j) x r2)``; r2
+      flips if any of these margins crosses zero (about x_T);
+    * both rules: about z_T, from the joint Gaussian of the two margins (rule 3 through its
+      most likely j).
+
+    Returns ``[p(only rule 3), p(only rule 2), p(both)]`` (about x_T, y_T, z_T); zeros where the
+    frame or its covariance is not finite. Tested against sampling (tests/test_frontends.py).
+    """
+    R = np.asarray(R_GT, dtype=float)
+    C = np.asarray(cov_frame, dtype=float)
+    ok = np.all(np.isfinite(R), axis=(-1, -2)) & np.all(np.isfinite(C), axis=(-1, -2))
+    R = np.where(ok[..., None, None], R, np.eye(3))
+    C = np.where(ok[..., None, None], C, 0.0)
+    R_TG = np.swapaxes(R, -1, -2)
+    r1, r2 = R[..., :, 0], R[..., :, 1]
+
+    def gradient(axis_G: Array) -> Array:  # a = R_TG axis_G, and its sigma
+        a = (R_TG @ axis_G[..., None])[..., 0]
+        return a, np.sqrt(np.maximum(np.einsum("...i,...ij,...j->...", a, C, a), 0.0))
+
+    def standardised(margin: Array, sd: Array) -> Array:  # -margin / sd, -inf if sd = 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(sd > 0, -np.abs(margin) / np.where(sd > 0, sd, 1.0), -np.inf)
+
+    ex = np.broadcast_to(np.array([1.0, 0.0, 0.0]), r1.shape)
+    a1, sd1 = gradient(np.cross(ex, r1))
+    a1 = a1 * np.where(r1[..., 0] < 0, -1.0, 1.0)[..., None]
+    h = standardised(r1[..., 0], sd1)
+    p1 = stats.norm.cdf(h)
+    k = np.argmax(np.abs(r2), axis=-1)
+    rk = np.take_along_axis(r2, k[..., None], axis=-1)[..., 0]
+    sk = np.where(rk < 0, -1.0, 1.0)
+    keep = np.ones_like(p1)
+    best_p = np.zeros_like(p1)
+    best_a = np.zeros_like(a1)
+    best_z = np.full_like(p1, -np.inf)
+    eye = np.eye(3)
+    for j in range(3):
+        opposite = (k != j) & (r2[..., j] * rk < 0)
+        aj, sdj = gradient(np.cross(eye[k] + eye[j], r2))
+        zj = standardised(np.abs(rk) - np.abs(r2[..., j]), sdj)
+        pj = np.where(opposite, stats.norm.cdf(zj), 0.0)
+        keep = keep * (1.0 - pj)
+        better = pj > best_p
+        best_p = np.where(better, pj, best_p)
+        best_z = np.where(better, zj, best_z)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            unit = sk[..., None] * aj / np.where(sdj > 0, sdj, 1.0)[..., None]
+        best_a = np.where(better[..., None], unit, best_a)
+    p2 = 1.0 - keep
+    both = np.zeros_like(p1)
+    joint = (p1 > 1e-9) & (best_p > 1e-9)
+    if joint.any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u1 = a1[joint] / sd1[joint][:, None]
+        rho = np.einsum("...i,...ij,...j->...", u1, C[joint], best_a[joint])
+        both[joint] = _bivariate_normal_cdf(h[joint], best_z[joint], rho)
+    both = np.minimum(both, np.minimum(p1, p2))
+    out = np.stack([p2 - both, p1 - both, both], axis=-1)
+    return np.where(ok[..., None], np.clip(out, 0.0, 1.0), 0.0)
