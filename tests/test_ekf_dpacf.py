@@ -726,8 +726,9 @@ def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
 
 
 def test_branch_mixture_cov_covers_the_half_turns():
-    """On the branch turned about axis a the error is Delta = [+-pi e_a; F w - w; 0; 0; 0;
-    F f - f]; the mixture term is the average of Delta Delta^T over the two signs, times p."""
+    """On the branch turned about axis a the error is Delta + J eps, Delta = [+-pi e_a;
+    F w - w; 0; 0; 0; F f - f]: the mixture's covariance about the estimate is
+    (1 - p) P + p (J P J^T + the average of Delta Delta^T over the two signs)."""
     rng = np.random.default_rng(5)
     lay = hu.layout(2)
     x = np.zeros((1, lay.nominal_dim))
@@ -742,8 +743,13 @@ def test_branch_mixture_cov_covers_the_half_turns():
         assert np.isclose(abs(d[a]), np.pi) and np.allclose(np.delete(d[:3], a), 0.0, atol=1e-9)
         d_other = d.copy()
         d_other[:3] *= -1
-        expect = 0.25 * 0.5 * (np.outer(d, d) + np.outer(d_other, d_other))
-        np.testing.assert_allclose(hu.branch_mixture_cov(x, p, lay)[0], expect, atol=1e-9)
+        A = rng.normal(size=(lay.dim, lay.dim))
+        P0 = A @ A.T
+        PJ = P0[None].copy()
+        hu._turn_state(x.copy(), PJ, np.array([0]), hu._FLIPS[a][None], lay)  # J P0 J^T
+        expect = 0.75 * P0 + 0.25 * (PJ[0] + 0.5 * (np.outer(d, d) + np.outer(d_other, d_other)))
+        got = hu.branch_mixture_cov(x, P0[None], p, lay)[0]
+        np.testing.assert_allclose(got, expect, atol=1e-9)
 
 
 def test_mass_centre_from_rotation_finds_the_mass_centre():

@@ -607,6 +607,21 @@ def _consider_cov(x, P, C, p_turn, flips, N, out):
                         + JC[bi, a, 2] * J[bj, c, 2]
                     )
     d = P.shape[0]
+    if p_turn[0] > 0.0 or p_turn[1] > 0.0 or p_turn[2] > 0.0:
+        # the turned branch's own covariance J_a P J_a (J_a = diag of signs): entries whose
+        # signs differ are scaled by 1 - 2 p_a
+        sg = np.ones((3, d))
+        for t in range(3):
+            for blk in range(nb):
+                for a in range(3):
+                    sg[t, offs[blk] + a] = flips[t, a, a]
+        for i in range(d):
+            for j in range(d):
+                fac = 1.0
+                for t in range(3):
+                    if sg[t, i] * sg[t, j] < 0.0:
+                        fac -= 2.0 * p_turn[t]
+                out[i, j] *= fac
     v = np.zeros(d)
     for t in range(3):
         pt = p_turn[t]

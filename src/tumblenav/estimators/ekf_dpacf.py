@@ -505,34 +505,40 @@ def frame_consider_cov(
     Ju = frame_jacobian(x, lay)
     out = P + Ju @ np.nan_to_num(cov_frame) @ np.swapaxes(Ju, -1, -2)
     if p_turn is not None:
-        out = out + branch_mixture_cov(x, p_turn, lay)
+        out = branch_mixture_cov(x, out, p_turn, lay)
     return out
 
 
-def branch_mixture_cov(x: Array, p_turn: Array, lay: StateLayout) -> Array:
-    """``sum_a p_a M_a`` (B, d, d): the second moment, about the filter's estimate, of the
-    state on the frame turned by a half turn about T's axis ``a`` (probability ``p_a``,
-    ``frontends.inertia.branch_probabilities``; beyond the paper).
+def branch_mixture_cov(x: Array, P: Array, p_turn: Array, lay: StateLayout) -> Array:
+    """Second moment about the filter's estimate of the two-branch mixture (B, d, d): with
+    probability ``p_a`` (``frontends.inertia.branch_probabilities``) the truth lies on the
+    frame turned by a half turn ``F_a`` about T's axis ``a`` (beyond the paper).
 
     The sign rules of the DPACF (Hu 2024 eq. 17) make the posterior bimodal near their
     boundary: the estimate is on one branch, the truth may be on the other. On the turned
-    branch the error is ``Delta_a = [+-pi e_a; F_a w - w; 0; 0; 0; F_a f_i - f_i]`` (the
-    sign of the half-turn rotation vector is arbitrary), so the mixture's covariance about
-    the estimate (its mode) is ``P + sum_a p_a M_a`` with ``M_a`` the average of the two
-    signs' ``Delta Delta^T``: ``pi^2 e_a e_a^T`` on the attitude plus ``v v^T`` for the rest."""
+    branch the error is ``Delta_a + J_a eps`` with ``Delta_a = [+-pi e_a; F_a w - w; 0; 0; 0;
+    F_a f_i - f_i]`` (the sign of the half-turn rotation vector is arbitrary) and ``J_a``
+    (``F_a`` on the attitude, rate and feature blocks, a diagonal of signs) turning the
+    filter's own error ``eps ~ N(0, P)``. So the covariance about the estimate (the mode) is
+    ``(1 - sum p_a) P + sum_a p_a (J_a P J_a + M_a)``, ``M_a`` the average of the two signs'
+    ``Delta Delta^T``: ``pi^2 e_a e_a^T`` on the attitude plus ``v v^T`` for the rest."""
     B = x.shape[0]
     N = (lay.nominal_dim - lay.nom("features").start) // 3
     sa = lay.err("attitude")
     w = x[:, lay.nom("rate")]
     f = x[:, lay.nom("features")].reshape(B, N, 3)
-    out = np.zeros((B, lay.dim, lay.dim))
+    out = P.copy()
     for a in range(3):
         F = _FLIPS[a]
+        sg = np.ones(lay.dim)  # J_a = diag(sg)
+        for name in ("attitude", "rate", "features"):
+            sl = lay.err(name)
+            sg[sl] = np.tile(np.diag(F), (sl.stop - sl.start) // 3)
         v = np.zeros((B, lay.dim))
         v[:, lay.err("rate")] = w @ F.T - w
         v[:, lay.err("features")] = (f @ F.T - f).reshape(B, -1)
         pa = p_turn[:, a, None, None]
-        out += pa * (v[:, :, None] * v[:, None, :])
+        out += pa * (P * (np.outer(sg, sg) - 1.0) + v[:, :, None] * v[:, None, :])
         out[:, sa.start + a, sa.start + a] += p_turn[:, a] * np.pi**2
     return out
 
