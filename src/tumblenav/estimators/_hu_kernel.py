@@ -569,43 +569,58 @@ def _turn(x, P, F, N, f_first):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
+def _chol3(C, L):
+    """``ekf_dpacf._chol3`` for one 3x3 matrix (guarded lower Cholesky factor)."""
+    L[:, :] = 0.0
+    L[0, 0] = math.sqrt(max(C[0, 0], 0.0))
+    if L[0, 0] > 0.0:
+        L[1, 0] = C[1, 0] / L[0, 0]
+        L[2, 0] = C[2, 0] / L[0, 0]
+    L[1, 1] = math.sqrt(max(C[1, 1] - L[1, 0] * L[1, 0], 0.0))
+    if L[1, 1] > 0.0:
+        L[2, 1] = (C[2, 1] - L[2, 0] * L[1, 0]) / L[1, 1]
+    L[2, 2] = math.sqrt(max(C[2, 2] - L[2, 0] * L[2, 0] - L[2, 1] * L[2, 1], 0.0))
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _consider_cov(x, P, C, p_turn, flips, N, out):
-    """``ekf_dpacf.frame_consider_cov`` for one run: out = P + Ju C Ju^T, Ju = [I; -[w x];
-    0; 0; 0; -[f_i x]] (the frame-rotation Jacobian of ``ekf_dpacf.frame_jacobian``), plus
-    the half turns' mixture ``ekf_dpacf.branch_mixture_cov`` (probabilities ``p_turn``)."""
+    """``ekf_dpacf.frame_consider_cov`` for one run: out = P plus the second moment, over the
+    six sigma points ``u = +-sqrt(3) L e_i`` of the frame error, of ``[u; R(u) w - w; 0; 0;
+    0; R(u) f_i - f_i]``, plus the half turns' mixture ``ekf_dpacf.branch_mixture_cov``
+    (probabilities ``p_turn``)."""
     out[:, :] = P
     nb = 2 + N
-    J = np.zeros((nb, 3, 3))
     offs = np.empty(nb, dtype=np.int64)
-    for a in range(3):
-        J[0, a, a] = 1.0
     offs[0] = _SA
     for blk in range(1, nb):
-        o = _NW if blk == 1 else _NF + 3 * (blk - 2)
         offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
-        w0, w1, w2 = x[o], x[o + 1], x[o + 2]
-        # -[w x]
-        J[blk, 0, 1], J[blk, 0, 2] = w2, -w1
-        J[blk, 1, 0], J[blk, 1, 2] = -w2, w0
-        J[blk, 2, 0], J[blk, 2, 1] = w1, -w0
-    JC = np.zeros((nb, 3, 3))
-    for blk in range(nb):
+    L = np.empty((3, 3))
+    _chol3(C, L)
+    u = np.empty(3)
+    qu = np.empty(4)
+    Ru = np.empty((3, 3))
+    D = np.zeros((nb, 3))
+    r3 = math.sqrt(3.0)
+    for sp in range(6):
+        sg = r3 if sp < 3 else -r3
         for a in range(3):
-            for c in range(3):
-                JC[blk, a, c] = (
-                    J[blk, a, 0] * C[0, c] + J[blk, a, 1] * C[1, c] + J[blk, a, 2] * C[2, c]
-                )
-    for bi in range(nb):
-        oi = offs[bi]
-        for bj in range(nb):
-            oj = offs[bj]
+            u[a] = sg * L[a, sp % 3]
+        _exp_quat(u, qu)
+        _qmat(qu, Ru)
+        for a in range(3):
+            D[0, a] = u[a]
+        for blk in range(1, nb):
+            o = _NW if blk == 1 else _NF + 3 * (blk - 2)
             for a in range(3):
-                for c in range(3):
-                    out[oi + a, oj + c] += (
-                        JC[bi, a, 0] * J[bj, c, 0]
-                        + JC[bi, a, 1] * J[bj, c, 1]
-                        + JC[bi, a, 2] * J[bj, c, 2]
-                    )
+                D[blk, a] = Ru[a, 0] * x[o] + Ru[a, 1] * x[o + 1] + Ru[a, 2] * x[o + 2] - x[o + a]
+        for bi in range(nb):
+            oi = offs[bi]
+            for a in range(3):
+                da = D[bi, a] / 6.0
+                for bj in range(nb):
+                    oj = offs[bj]
+                    for c in range(3):
+                        out[oi + a, oj + c] += da * D[bj, c]
     d = P.shape[0]
     if p_turn[0] > 0.0 or p_turn[1] > 0.0 or p_turn[2] > 0.0:
         # the turned branch's own covariance J_a P J_a (J_a = diag of signs): entries whose
@@ -662,6 +677,7 @@ def run_filter_kernel(
     s_r2,
     Pht,
     Qt,
+    q_feat,
     flips,
     qflips,
     xt,
@@ -715,6 +731,9 @@ def run_filter_kernel(
                         s += Pht[i, m] * rv[m]
                     x[_NR + i] = s
                 _predict_cov(P, Phr, Qr, Pht, Qt)
+                if q_feat > 0.0:  # features' random walk (uniform grid: one dt)
+                    for i in range(_SF, d):
+                        P[i, i] += q_feat
             start = k == k0[b] and not diverged[b]
             if start:
                 x[:] = x0[b]

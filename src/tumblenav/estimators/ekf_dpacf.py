@@ -140,6 +140,12 @@ class HuTuning(BaseModel):
         "(beyond the paper, see frame_consider_cov); default: 'consider' for ekf-dpacf with "
         "dpacf_measurement 'attitude', else 'white'",
     )
+    sigma_f2_m2_s: float = Field(
+        0.0,
+        ge=0,
+        description="random walk of each feature's position in T (m^2/s, per axis): what the "
+        "rigid, exactly-known-template model leaves out (beyond the paper; Hu 2024 has none)",
+    )
     branch_mixture: bool = Field(
         True,
         description="with dpacf_frame_error 'consider': the reported covariance also holds "
@@ -486,6 +492,22 @@ def frame_jacobian(x: Array, lay: StateLayout) -> Array:
     return Ju
 
 
+def _chol3(C: Array) -> Array:
+    """Lower Cholesky factor of (B, 3, 3) positive semi-definite matrices, zero columns where
+    a pivot is not positive (the same guarded formulas as the compiled ``_chol3``)."""
+    L = np.zeros_like(C)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        L[:, 0, 0] = np.sqrt(np.maximum(C[:, 0, 0], 0.0))
+        ok = L[:, 0, 0] > 0
+        L[:, 1, 0] = np.where(ok, C[:, 1, 0] / L[:, 0, 0], 0.0)
+        L[:, 2, 0] = np.where(ok, C[:, 2, 0] / L[:, 0, 0], 0.0)
+        L[:, 1, 1] = np.sqrt(np.maximum(C[:, 1, 1] - L[:, 1, 0] ** 2, 0.0))
+        ok = L[:, 1, 1] > 0
+        L[:, 2, 1] = np.where(ok, (C[:, 2, 1] - L[:, 2, 0] * L[:, 1, 0]) / L[:, 1, 1], 0.0)
+        L[:, 2, 2] = np.sqrt(np.maximum(C[:, 2, 2] - L[:, 2, 0] ** 2 - L[:, 2, 1] ** 2, 0.0))
+    return L
+
+
 def frame_consider_cov(
     x: Array, P: Array, cov_frame: Array, lay: StateLayout, p_turn: Array | None = None
 ) -> Array:
@@ -499,11 +521,27 @@ def frame_consider_cov(
     features' common rotation became over-confident (block NEES/dof 20 and 38, see
     docs/results/hu2024.md). Here the filter measures only the white G-attitude part and
     the frame's error is a consider parameter: the error against the truth is the filter's
-    error in its frame plus ``Ju u``, independent to first order, so the reported covariance
-    is ``P + Ju cov_frame Ju^T`` (:func:`frame_jacobian`); with ``p_turn`` (B, 3) plus the
-    half turns of the frame, :func:`branch_mixture_cov`."""
-    Ju = frame_jacobian(x, lay)
-    out = P + Ju @ np.nan_to_num(cov_frame) @ np.swapaxes(Ju, -1, -2)
+    error in its frame plus the state turned by ``u`` minus the state, independent of it,
+    so the reported covariance is ``P`` plus the second moment of
+    ``D(u) = turn(x, exp(u)) boxminus x = [u; R(u) w - w; 0; 0; 0; R(u) f_i - f_i]``
+    (to first order ``Ju u``, :func:`frame_jacobian`). The second moment is taken over the
+    six sigma points ``u = +-sqrt(3) L e_i`` (``C = L L^T``; with n = 3 and kappa = 0 they
+    match the Gaussian's moments to the fourth): at 1e-6 rad the features' shape is known
+    to micrometres while the frame is known to a tenth of a degree, and the quadratic part
+    of the turn, ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn``
+    (B, 3), the half turns of the frame are added, :func:`branch_mixture_cov`."""
+    B = x.shape[0]
+    N = (lay.nominal_dim - lay.nom("features").start) // 3
+    L = _chol3(np.nan_to_num(cov_frame))
+    U = np.sqrt(3.0) * np.concatenate([np.swapaxes(L, -1, -2), -np.swapaxes(L, -1, -2)], 1)
+    R = rot.exp_map(U)  # (B, 6, 3, 3)
+    D = np.zeros((B, 6, lay.dim))
+    D[:, :, lay.err("attitude")] = U
+    w = x[:, None, lay.nom("rate"), None]
+    D[:, :, lay.err("rate")] = (R @ w)[..., 0] - w[..., 0]
+    f = x[:, lay.nom("features")].reshape(B, 1, N, 3)
+    D[:, :, lay.err("features")] = (f @ np.swapaxes(R, -1, -2) - f).reshape(B, 6, 3 * N)
+    out = P + np.swapaxes(D, -1, -2) @ D / 6.0
     if p_turn is not None:
         out = branch_mixture_cov(x, out, p_turn, lay)
     return out
@@ -712,7 +750,7 @@ def run_filter(
             init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
             tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
             MAX_RATE_RAD_S,
-            s_r2, Pht, Qt,
+            s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
             _FLIPS, rot.matrix_to_quat(_FLIPS), xt if xt is not None else empty(1), nees_every,
             _neutral_state(lay), out_x if keep_history else empty(1),
             out_P if keep_history else empty(1, 1), nis, nis_dof,
@@ -742,6 +780,9 @@ def run_filter(
             P[:, :, 9:15] = P[:, :, 9:15] @ Pht.T
             P[:, :9, :9] += Qr
             P[:, 9:15, 9:15] += Qt
+            if tun.sigma_f2_m2_s > 0:
+                sf = lay.err("features")
+                P[:, sf, sf] += tun.sigma_f2_m2_s * dt * np.eye(sf.stop - sf.start)
         start = (init.k0 == k) & ~diverged
         if start.any():
             x[start] = init.x0[start]
