@@ -69,6 +69,7 @@ class PointsFrontEnd:
     q_TI: Array  # (B,n,4) DPACF attitude measurement
     cov_TI: Array  # (B,n,3,3) its covariance (frame part + G attitude noise)
     cov_frame: Array  # (B,n,3,3) the slowly varying part: error of the DPACF frame T in G
+    cov_ratios: Array  # (B,n,3,3) covariance of the inertia ratios p (Hu 2024 eq. 19)
     skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
 
 
@@ -289,9 +290,10 @@ def identify_and_dpacf(
     cov_G: Array,
     s: FrontEndSettings,
     delay: int = 0,
-) -> tuple[Array, Array, Array, Array, Array]:
+) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
-    attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance."""
+    attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
+    covariance of the inertia ratios (eq. 19)."""
     B, n = omega_G.shape[:2]
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
     a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
@@ -340,11 +342,27 @@ def identify_and_dpacf(
         -2,
     )  # (...,3,5)
     cov_phi = Jphi @ cov_l @ np.swapaxes(Jphi, -1, -2)
+    # Covariance of the inertia ratios p (Hu 2024 eq. 19) by first-order perturbation of the
+    # eigenvalues, d lambda_i = r_i^T dI r_i (beyond the paper: the filter's initial
+    # covariance of p; the moments themselves are scale-free, p is a function of them).
+    Jlam = np.einsum("...ai,jab,...bi->...ij", R_GT, _E, R_GT)  # (...,3,5)
+    zero = np.zeros_like(l1)
+    Jp = np.stack(
+        [
+            np.stack([-(l2 - l3) / l1**2, 1 / l1, -1 / l1], -1),
+            np.stack([-1 / l2, -(l3 - l1) / l2**2, 1 / l2], -1),
+            np.stack([1 / l3, -1 / l3, -(l1 - l2) / l3**2], -1),
+        ],
+        -2,
+    ) + zero[..., None, None]
+    Jpl = Jp @ Jlam
+    cov_p = Jpl @ cov_l @ np.swapaxes(Jpl, -1, -2)
     sig_phi = np.sqrt(np.max(np.linalg.eigvalsh(np.nan_to_num(cov_phi, nan=1e6)), axis=-1))
     valid &= sig_phi < s.max_dpacf_sigma_rad
     # back to every epoch (hold the latest solution)
     pos = np.searchsorted(sel, held)
     R_GT, lam, cov_phi, valid = R_GT[:, pos], lam[:, pos], cov_phi[:, pos], valid[:, pos]
+    cov_p = cov_p[:, pos]
     R_TG = np.swapaxes(R_GT, -1, -2)
     R_TI = R_TG @ _finite_or_identity(R_GI)
     cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
@@ -355,7 +373,8 @@ def identify_and_dpacf(
     R_GT = np.where(valid[..., None, None], R_GT, np.nan)
     moments = np.where(valid[..., None], lam / lam[..., :1], np.nan)
     cov_phi = np.where(valid[..., None, None], cov_phi, np.nan)
-    return R_GT, moments, q_TI, cov_TI, cov_phi
+    cov_p = np.where(valid[..., None, None], cov_p, np.nan)
+    return R_GT, moments, q_TI, cov_TI, cov_phi, cov_p
 
 
 def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
@@ -388,7 +407,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     omega_G, var_w = rates_from_G(R_GI, cov_G, dt, s.rate_half_window)
-    R_GT, moments, q_TI, cov_TI, cov_frame = identify_and_dpacf(
+    R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
         omega_G, var_w, R_GI, cov_G, s, delay=s.rate_half_window
     )
     return PointsFrontEnd(
@@ -407,5 +426,6 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         q_TI=q_TI,
         cov_TI=cov_TI,
         cov_frame=cov_frame,
+        cov_ratios=cov_ratios,
         skipped=skipped,
     )
