@@ -695,6 +695,7 @@ def run_filter_kernel(
     R_GT,
     cov_frame,
     p_turn,
+    skip_start,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
@@ -702,7 +703,8 @@ def run_filter_kernel(
     (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive).
     ``consider``: the 'consider' frame model, with the front end's frames ``R_GT`` (B,n,3,3,
     NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite) and the probabilities
-    of their half turns ``p_turn`` (B,n,3)."""
+    of their half turns ``p_turn`` (B,n,3). ``skip_start``: no update at the start epoch (a
+    refined start, ``ekf_dpacf.refine_start_pose``, has used it)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     keep = out_x.shape[1] > 0
@@ -748,8 +750,9 @@ def run_filter_kernel(
                     _turn(x, P, _mm(R_GT[b, k].T.copy(), R_used), N, f_first)
                     R_used[:, :] = R_GT[b, k]
             if active:
+                upd = not (start and skip_start)  # a refined start used its epoch already
                 use_att = use_dpacf and (k % att_every == 0)
-                if use_att:
+                if use_att and upd:
                     votes, turned = _follow_branch(
                         x, P, q_meas[b, k], N, flips, qflips, votes, flip_need, f_first
                     )
@@ -762,10 +765,12 @@ def run_filter_kernel(
                         )
                         if fresh:
                             f_first[i] = x[_NF + 3 * i : _NF + 3 * i + 3]
-                nis_k, dof_k = _update(
-                    x, P, k, N, p_L[b], cov_L[b], usable[b], q_meas[b], R0[b, k], use_att,
-                    R_LI[b], f_first, fej,
-                )  # fmt: skip
+                nis_k, dof_k = 0.0, 0
+                if upd:
+                    nis_k, dof_k = _update(
+                        x, P, k, N, p_L[b], cov_L[b], usable[b], q_meas[b], R0[b, k], use_att,
+                        R_LI[b], f_first, fej,
+                    )  # fmt: skip
                 if start or k % constrain_every == 0:
                     _constrain(x, P, curvature)
                 if _diverged(x, P, N, max_rate):  # a run that blew up is stopped and counted

@@ -61,6 +61,7 @@ class PointsFrontEnd:
     R_GI: Array  # (B,n,3,3)
     cov_G: Array  # (B,n,3,3) rad^2, G attitude error in G
     omega_G: Array  # (B,n,3) rad/s, rate of G wrt I in G
+    var_omega: Array  # (B,n) rad^2/s^2, its variance per axis
     template_G: Array  # (B,N,3) m, feature coordinates in G
     known: NDArray[np.bool_]  # (B,N)
     known_at: NDArray[np.bool_]  # (B,n,N) catalogued in the template by epoch k
@@ -347,14 +348,17 @@ def identify_and_dpacf(
     # covariance of p; the moments themselves are scale-free, p is a function of them).
     Jlam = np.einsum("...ai,jab,...bi->...ij", R_GT, _E, R_GT)  # (...,3,5)
     zero = np.zeros_like(l1)
-    Jp = np.stack(
-        [
-            np.stack([-(l2 - l3) / l1**2, 1 / l1, -1 / l1], -1),
-            np.stack([-1 / l2, -(l3 - l1) / l2**2, 1 / l2], -1),
-            np.stack([1 / l3, -1 / l3, -(l1 - l2) / l3**2], -1),
-        ],
-        -2,
-    ) + zero[..., None, None]
+    Jp = (
+        np.stack(
+            [
+                np.stack([-(l2 - l3) / l1**2, 1 / l1, -1 / l1], -1),
+                np.stack([-1 / l2, -(l3 - l1) / l2**2, 1 / l2], -1),
+                np.stack([1 / l3, -1 / l3, -(l1 - l2) / l3**2], -1),
+            ],
+            -2,
+        )
+        + zero[..., None, None]
+    )
     Jpl = Jp @ Jlam
     cov_p = Jpl @ cov_l @ np.swapaxes(Jpl, -1, -2)
     sig_phi = np.sqrt(np.max(np.linalg.eigvalsh(np.nan_to_num(cov_phi, nan=1e6)), axis=-1))
@@ -418,6 +422,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         R_GI=R_GI,
         cov_G=cov_G,
         omega_G=omega_G,
+        var_omega=var_w,
         template_G=template,
         known=known,
         known_at=known_at,
