@@ -406,9 +406,12 @@ def refine_start_pose(
     c0, A, g = cost_and_normal(q, r)
     qk, rk, ck = q, r, c0
     for _ in range(iters):
-        if not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e12:
+        try:
+            d = np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
             return None
-        d = np.linalg.solve(A, g)
+        if not np.all(np.isfinite(d)):
+            return None
         qn = rot.quat_multiply(rot.exp_quat(d[:3]), qk)
         rn = rk + d[3:]
         cn, An, gn = cost_and_normal(qn, rn)
@@ -770,7 +773,10 @@ def run_filter(
     init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider, refine=refine)
     p_turn = np.zeros((B, n, 3))
     if consider and tun.branch_mixture:
-        p_turn = branch_probabilities(fe.R_GT, fe.cov_frame)
+        # the front end re-solves its frame every ls_every epochs and holds it in between
+        every = stereo_points.FrontEndSettings().ls_every
+        solved = branch_probabilities(fe.R_GT[:, ::every], fe.cov_frame[:, ::every])
+        p_turn = np.repeat(solved, every, axis=1)[:, :n]
     d = lay.dim
     x = np.tile(_neutral_state(lay), (B, 1))
     P = np.tile(np.eye(d), (B, 1, 1))
@@ -1276,7 +1282,11 @@ def filter_view(
     """The front end as the filter uses it: DPACF frames (attitude measurement, frame, moments)
     only where the frame's 1-sigma (largest axis) is below ``max_sigma_rad``. The front end
     itself reports them from ``dpacf_emit_sigma_rad`` on (Hu 2024 Fig. 5)."""
-    sig = np.sqrt(np.linalg.eigvalsh(np.nan_to_num(fe.cov_frame, nan=1e6))[..., -1])
+    # frames are re-solved every ls_every epochs and held in between: test the solved ones
+    every = stereo_points.FrontEndSettings().ls_every
+    n = fe.cov_frame.shape[1]
+    C = np.nan_to_num(fe.cov_frame[:, ::every], nan=1e6)
+    sig = np.repeat(np.sqrt(np.linalg.eigvalsh(C)[..., -1]), every, axis=1)[:, :n]
     keep = sig < max_sigma_rad
     view = dataclasses.replace(
         fe,
