@@ -94,9 +94,10 @@ class HuTuning(BaseModel):
     max_ratio_sigma: float | None = Field(
         0.03,
         gt=0,
-        description="ekf-dpacf starts only once the largest 1-sigma of the front end's "
+        description="the filter starts only once the largest 1-sigma of the front end's "
         "inertia ratios is below this as well (beyond the paper: earlier, the least-squares "
-        "ratios can be 4 sigma off, and the filter learns the ratios slowly); None: no gate",
+        "ratios can be 4 sigma off, and the filter learns the ratios slowly; ekf-baseline "
+        "keeps the gate so that both start at the same epoch); None: no gate",
     )
     dpacf_emit_sigma_rad: float = Field(
         0.2,
@@ -444,7 +445,7 @@ def _initial_state(
     B, n, N = fe.usable.shape
     ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
     ready &= fe.usable.sum(axis=-1) >= 3  # fe: the filter's view (filter_view), gated frames
-    if use_dpacf and tun.max_ratio_sigma is not None:
+    if tun.max_ratio_sigma is not None:  # both estimators, so that they start together
         var_p = np.nan_to_num(np.diagonal(fe.cov_ratios, axis1=-2, axis2=-1), nan=np.inf)
         ready &= np.sqrt(var_p.max(axis=-1)) < tun.max_ratio_sigma
     k0 = np.where(ready.any(axis=1), np.argmax(ready, axis=1), -1)
