@@ -1,0 +1,137 @@
+"""Diagnostics behind docs/results/hu2024.md, Consistency: is each covariance honest?
+
+Three readings of hu2024 runs (the campaign's seeds), ekf-dpacf front end and filter:
+
+* ``frame``: the DPACF frame of the front end against the true principal frame, NEES per
+  degree of freedom with its ``cov_frame``, per run averaged over time windows (with
+  ``--run``: also each listed run's frame error at the end; a run on the other branch shows
+  a half turn);
+* ``ratios``: the front end's inertia ratios against the truth, NEES/dof with
+  ``cov_ratios`` (2 dof: the ratios obey one constraint) at the filter's start and over
+  windows;
+* ``start``: for the runs given by ``--run``, the filter's errors and 1-sigma (square root of
+  the block's trace) per block at and after its start.
+
+Usage: python benchmarks/hu2024_diagnostics.py frame|ratios [--runs 40 | --run K ...]
+       [--noise 2e-5]
+       python benchmarks/hu2024_diagnostics.py start --run 475 [--run ...] [--noise 2e-5]
+       [--set key=value ...]  (estimator.tuning overrides, YAML values)
+Last line: ``frame_nees_mean=<last window>`` / ``ratio_nees_start_mean=<...>`` /
+``start_attitude_err_over_sigma=<first run, at the start>``
+"""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+
+import numpy as np
+import yaml
+
+from tumblenav import rotations as rot
+from tumblenav.campaign.store import run_seed
+from tumblenav.estimators import ekf_dpacf as hu
+from tumblenav.frontends.inertia import inertia_ratios, principal_frame
+from tumblenav.scenario import load_scenario
+from tumblenav.simulation import simulate
+
+WINDOWS = ((20, 30), (30, 60), (60, 100), (100, 150), (150, 200))
+
+
+def true_frame(template_G, known, truth) -> np.ndarray:
+    """R_GT of the true inertia in this run's G (as ekf_dpacf.canonical_frame)."""
+    g, f = template_G[known], truth.features_T[known]
+    U, _, Vt = np.linalg.svd((f - f.mean(0)).T @ (g - g.mean(0)))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R_GT = Vt.T @ D @ U.T
+    return principal_frame(R_GT @ np.asarray(truth.inertia_T) @ R_GT.T)
+
+
+def per_window(t, v, label):
+    last = float("nan")
+    for w in WINDOWS:
+        m = (t >= w[0]) & (t <= w[1])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            pr = np.nanmean(v[:, m], axis=1)
+        pr = pr[np.isfinite(pr)]
+        if len(pr):
+            last = float(np.mean(pr))
+            print(f"{label} {w}: per-run NEES/dof median {np.median(pr):.3g} mean {last:.3g} "
+                  f"p90 {np.percentile(pr, 90):.3g} ({len(pr)} runs)")  # fmt: skip
+    return last
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=["frame", "ratios", "start"])
+    ap.add_argument("--runs", type=int, default=40)
+    ap.add_argument("--run", type=int, action="append", default=[])
+    ap.add_argument("--noise", type=float, default=2e-5)
+    ap.add_argument("--set", action="append", default=[], help="tuning key=value")
+    args = ap.parse_args()
+    sc = load_scenario("hu2024")
+    tuning = dict(sc.estimator.tuning)
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        tuning[k] = yaml.safe_load(v)
+    sc = sc.with_updates(**{"sensor.noise.angular_rad": args.noise, "estimator.tuning": tuning})
+    ks = args.run if args.run else list(range(args.runs))
+    sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in ks]
+    truths = [t for t, _ in sims]
+    res = hu.run_filter(sc, [m for _, m in sims], True, truths=truths, nees_every=10)
+    fe, t = res["frontend"], res["t"]
+    if args.what == "frame":
+        v = np.full(fe.R_GT.shape[:2], np.nan)
+        for b, tr in enumerate(truths):
+            Rc = true_frame(fe.template_G[b], fe.known[b], tr)
+            ok = np.all(np.isfinite(fe.R_GT[b]), axis=(-1, -2))
+            e = rot.log_map(Rc.T @ fe.R_GT[b, ok])
+            v[b, ok] = np.einsum("ki,kij,kj->k", e, np.linalg.inv(fe.cov_frame[b, ok]), e) / 3
+        if args.run:  # the listed runs: the frame's error and 1-sigma at the end, per T axis
+            for b, k in enumerate(ks):
+                Rc = true_frame(fe.template_G[b], fe.known[b], truths[b])
+                e = np.degrees(rot.log_map(Rc.T @ fe.R_GT[b, -1]))
+                sd = np.degrees(np.sqrt(np.diag(fe.cov_frame[b, -1])))
+                print(f"run {k}: frame error at the end {np.round(e, 2)} deg, 1-sigma "
+                      f"{np.round(sd, 2)} deg")  # fmt: skip
+        print(f"frame_nees_mean={per_window(t, v, 'DPACF frame'):.3g}")
+    elif args.what == "ratios":
+        e = inertia_ratios(fe.moments) - res["x_true"][:, -1:, 7:10]
+        ok = np.all(np.isfinite(e), -1) & np.all(np.isfinite(fe.cov_ratios), (-1, -2))
+        v = np.full(ok.shape, np.nan)
+        Ci = np.linalg.pinv(fe.cov_ratios[ok], hermitian=True, rcond=1e-10)
+        v[ok] = np.einsum("ki,kij,kj->k", e[ok], Ci, e[ok]) / 2
+        k0 = res["k0"]
+        v0 = np.array([v[b, k0[b]] for b in range(len(ks)) if k0[b] >= 0])
+        print(f"at the start: NEES/dof median {np.median(v0):.3g} mean {v0.mean():.3g} "
+              f"p90 {np.percentile(v0, 90):.3g} ({len(v0)} runs)")  # fmt: skip
+        per_window(t, v, "ratios")
+        print(f"ratio_nees_start_mean={v0.mean():.3g}")
+    else:
+        names = ("attitude", "rate", "inertia", "position", "velocity")
+        first = float("nan")
+        for b, k in enumerate(ks):
+            k0 = res["k0"][b]
+            print(f"run {k}: start {t[k0]:.1f} s (error / 1-sigma per block)")
+            if k0 < 0:
+                continue
+            for kk in (k0, k0 + 10, k0 + 100, len(t) - 1):
+                kk = min(kk, len(t) - 1)
+                e, P = res["err"][b, kk], res["P"][b, kk]
+                if not np.all(np.isfinite(e)):
+                    continue
+                cells = []
+                for j, nm in enumerate(names):
+                    s = slice(3 * j, 3 * j + 3)
+                    cells.append(
+                        f"{nm} {np.linalg.norm(e[s]):.3g}/{np.sqrt(np.trace(P[s, s])):.3g}"
+                    )
+                print(f"  t={t[kk]:.1f}  " + "  ".join(cells))
+                if b == 0 and kk == k0:
+                    first = np.linalg.norm(e[:3]) / np.sqrt(np.trace(P[:3, :3]))
+        print(f"start_attitude_err_over_sigma={first:.3g}")
+
+
+if __name__ == "__main__":
+    main()
