@@ -172,6 +172,13 @@ class HuTuning(BaseModel):
         "the half turns of the frame, weighted by the probability that the true inertia "
         "selects them (frontends.inertia.branch_probabilities; beyond the paper)",
     )
+    max_ratio_wait_s: float = Field(
+        30.0,
+        ge=0,
+        description="with max_ratio_sigma: start anyway once the DPACF frame has been good "
+        "enough for this long (a motion that leaves the ratios poorly determined must not "
+        "keep the filter from starting)",
+    )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
 
@@ -447,7 +454,11 @@ def _initial_state(
     ready &= fe.usable.sum(axis=-1) >= 3  # fe: the filter's view (filter_view), gated frames
     if tun.max_ratio_sigma is not None:  # both estimators, so that they start together
         var_p = np.nan_to_num(np.diagonal(fe.cov_ratios, axis1=-2, axis2=-1), nan=np.inf)
-        ready &= np.sqrt(var_p.max(axis=-1)) < tun.max_ratio_sigma
+        ratios_ok = np.sqrt(var_p.max(axis=-1)) < tun.max_ratio_sigma
+        # ... but not for longer than max_ratio_wait_s after the frame became good enough
+        t_ready = np.where(ready.any(axis=1), fe.t[np.argmax(ready, axis=1)], np.inf)
+        waited = fe.t[None, :] >= t_ready[:, None] + tun.max_ratio_wait_s
+        ready &= ratios_ok | waited
     k0 = np.where(ready.any(axis=1), np.argmax(ready, axis=1), -1)
     x0 = np.zeros((B, lay.nominal_dim))
     P0 = np.zeros((B, lay.dim, lay.dim))
