@@ -720,10 +720,15 @@ def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
     B = rng.normal(size=(3, 3))
     C = B @ B.T
     p_turn = rng.uniform(0, 0.3, size=3)
-    ref = hu.frame_consider_cov(x, P, C[None], lay, p_turn[None])[0]
+    p_turn[rng.integers(3)] = 0.0  # a turn left out
+    mu = rng.normal(size=(3, 3))
+    A3 = rng.normal(size=(3, 3, 3))
+    S = A3 @ np.swapaxes(A3, -1, -2)
+    ref = hu.frame_consider_cov(x, P, C[None], lay, p_turn[None], mu[None], S[None])[0]
     out = np.empty_like(ref)
-    _hu_kernel._consider_cov(x[0], P[0], C, p_turn, hu._FLIPS, n_feat, out)
+    _hu_kernel._consider_cov(x[0], P[0], C, p_turn, mu, S, hu._FLIPS, n_feat, out)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-10)
+    assert _hu_kernel.P_TURN_MIN == hu.P_TURN_MIN
 
 
 def test_frame_consider_cov_is_the_second_moment_of_the_turned_state():
@@ -783,7 +788,9 @@ def test_branch_mixture_cov_covers_the_half_turns():
         PJ = P0[None].copy()
         hu._turn_state(x.copy(), PJ, np.array([0]), hu._FLIPS[a][None], lay)  # J P0 J^T
         expect = 0.75 * P0 + 0.25 * (PJ[0] + 0.5 * (np.outer(d, d) + np.outer(d_other, d_other)))
-        got = hu.branch_mixture_cov(x, P0[None], p, lay)[0]
+        zeros = np.zeros((1, 3, 3))  # no frame error given the turn: E[D] = 0, E[D D^T] = 0
+        S0 = np.zeros((1, 3, 3, 3))
+        got = hu.branch_mixture_cov(x, P0[None], P0[None], p, zeros, S0, lay)[0]
         np.testing.assert_allclose(got, expect, atol=1e-9)
 
 

@@ -529,8 +529,10 @@ def test_branch_probabilities_match_sampling_near_the_sign_rules():
     """``branch_probabilities`` (first order) against the frequency with which a frame error
     u ~ N(0, C) makes the true inertia's DPACF the half turn about x_T, y_T or z_T. Frames
     are drawn at random, with 1-sigma 0.5-3 deg, and kept when some probability is > 2%
-    (i.e. near a rule's boundary); tolerance 0.03 absolute (sampling: 4000 draws)."""
-    from tumblenav.frontends.inertia import branch_probabilities
+    (i.e. near a rule's boundary); tolerance 0.03 absolute (sampling: 4000 draws). With
+    more than 400 flips by one rule while the other rarely flips, also the mean and
+    covariance of u given that flip (``branch_statistics``) against the sample's."""
+    from tumblenav.frontends.inertia import branch_probabilities, branch_statistics
 
     rng = np.random.default_rng(11)
     lam = np.array([8.0, 5.0, 4.0])
@@ -553,6 +555,13 @@ def test_branch_probabilities_match_sampling_near_the_sign_rules():
             np.mean((s[:, 0] < 0) & (s[:, 1] < 0)),
         ]
         assert np.allclose(p, freq, atol=0.03), (p, freq)
+        # given a single rule's flip, u is a truncated normal: its mean and covariance
+        _, mu, S = branch_statistics(R, C)
+        sig = np.sqrt(np.diag(C)).max()
+        for a, mask in enumerate([(s[:, 0] > 0) & (s[:, 1] < 0), (s[:, 0] < 0) & (s[:, 1] > 0)]):
+            if mask.sum() > 400 and p[1 - a] < 0.01 and p[2] < 0.005:  # one rule dominates
+                np.testing.assert_allclose(mu[a], u[mask].mean(0), atol=0.12 * sig)
+                np.testing.assert_allclose(S[a], np.cov(u[mask].T), atol=0.25 * sig**2)
         checked += 1
     # far from every boundary, and without a frame
     assert np.allclose(branch_probabilities(np.eye(3), 1e-6 * np.eye(3)), 0.0)

@@ -582,75 +582,102 @@ def _chol3(C, L):
     L[2, 2] = math.sqrt(max(C[2, 2] - L[2, 0] * L[2, 0] - L[2, 1] * L[2, 1], 0.0))
 
 
+P_TURN_MIN = 1e-9  # = ekf_dpacf.P_TURN_MIN (tested)
+
+
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _consider_cov(x, P, C, p_turn, flips, N, out):
-    """``ekf_dpacf.frame_consider_cov`` for one run: out = P plus the second moment, over the
-    six sigma points ``u = +-sqrt(3) L e_i`` of the frame error, of ``[u; R(u) w - w; 0; 0;
-    0; R(u) f_i - f_i]``, plus the half turns' mixture ``ekf_dpacf.branch_mixture_cov``
-    (probabilities ``p_turn``)."""
-    out[:, :] = P
-    nb = 2 + N
-    offs = np.empty(nb, dtype=np.int64)
-    offs[0] = _SA
-    for blk in range(1, nb):
-        offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
+def _turn_points(x, mu, S, N, D):
+    """``ekf_dpacf._turn_moments``' sigma points for one run: ``D[s]`` (6, 2 + N, 3) =
+    ``[u; R(u) w - w; R(u) f_i - f_i]`` at ``u = mu +- sqrt(3) L e_i`` (``S = L L^T``)."""
     L = np.empty((3, 3))
-    _chol3(C, L)
+    _chol3(S, L)
     u = np.empty(3)
     qu = np.empty(4)
     Ru = np.empty((3, 3))
-    D = np.zeros((nb, 3))
     r3 = math.sqrt(3.0)
     for sp in range(6):
         sg = r3 if sp < 3 else -r3
         for a in range(3):
-            u[a] = sg * L[a, sp % 3]
+            u[a] = mu[a] + sg * L[a, sp % 3]
         _exp_quat(u, qu)
         _qmat(qu, Ru)
         for a in range(3):
-            D[0, a] = u[a]
-        for blk in range(1, nb):
+            D[sp, 0, a] = u[a]
+        for blk in range(1, 2 + N):
             o = _NW if blk == 1 else _NF + 3 * (blk - 2)
             for a in range(3):
-                D[blk, a] = Ru[a, 0] * x[o] + Ru[a, 1] * x[o + 1] + Ru[a, 2] * x[o + 2] - x[o + a]
+                D[sp, blk, a] = (
+                    Ru[a, 0] * x[o] + Ru[a, 1] * x[o + 1] + Ru[a, 2] * x[o + 2] - x[o + a]
+                )
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
+    """``ekf_dpacf.frame_consider_cov`` for one run: out = Pc = P plus the second moment,
+    over the six sigma points of the frame error ``u ~ N(0, C)``, of ``D(u) = [u; R(u) w - w;
+    0; 0; 0; R(u) f_i - f_i]``; then the half turns' mixture ``ekf_dpacf.branch_mixture_cov``
+    (probabilities ``p_turn``, the frame error given each turn ``N(mu_turn[t], S_turn[t])``)."""
+    out[:, :] = P
+    nb = 2 + N
+    d = P.shape[0]
+    offs = np.empty(nb, dtype=np.int64)
+    offs[0] = _SA
+    for blk in range(1, nb):
+        offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
+    D = np.zeros((6, nb, 3))
+    _turn_points(x, np.zeros(3), C, N, D)
+    for sp in range(6):
         for bi in range(nb):
             oi = offs[bi]
             for a in range(3):
-                da = D[bi, a] / 6.0
+                da = D[sp, bi, a] / 6.0
                 for bj in range(nb):
                     oj = offs[bj]
                     for c in range(3):
-                        out[oi + a, oj + c] += da * D[bj, c]
-    d = P.shape[0]
-    if p_turn[0] > 0.0 or p_turn[1] > 0.0 or p_turn[2] > 0.0:
-        # the turned branch's own covariance J_a P J_a (J_a = diag of signs): entries whose
-        # signs differ are scaled by 1 - 2 p_a
-        sg = np.ones((3, d))
-        for t in range(3):
-            for blk in range(nb):
-                for a in range(3):
-                    sg[t, offs[blk] + a] = flips[t, a, a]
-        for i in range(d):
-            for j in range(d):
-                fac = 1.0
-                for t in range(3):
-                    if sg[t, i] * sg[t, j] < 0.0:
-                        fac -= 2.0 * p_turn[t]
-                out[i, j] *= fac
+                        out[oi + a, oj + c] += da * D[sp, bj, c]
+    if not (p_turn[0] > P_TURN_MIN or p_turn[1] > P_TURN_MIN or p_turn[2] > P_TURN_MIN):
+        return
+    Pc = out.copy()
+    sg = np.ones(d)
     v = np.zeros(d)
+    m1 = np.zeros(d)
+    m2 = np.zeros((d, d))
     for t in range(3):
         pt = p_turn[t]
-        if not pt > 0.0:
+        if not pt > P_TURN_MIN:
             continue
-        for blk in range(1, nb):  # v = F w - w, F f_i - f_i (F diagonal)
+        for i in range(d):
+            sg[i] = 1.0
+            v[i] = 0.0
+            m1[i] = 0.0
+        for blk in range(nb):  # J_t = diag(sg); v = F w - w, F f_i - f_i (F diagonal)
+            for a in range(3):
+                sg[offs[blk] + a] = flips[t, a, a]
+        for blk in range(1, nb):
             o = _NW if blk == 1 else _NF + 3 * (blk - 2)
             for a in range(3):
                 v[offs[blk] + a] = (flips[t, a, a] - 1.0) * x[o + a]
-        for i in range(3, d):
-            vi = pt * v[i]
-            if vi != 0.0:
-                for j in range(3, d):
-                    out[i, j] += vi * v[j]
+        # E[D] and E[D D^T] given the turn (only the attitude, rate and feature entries)
+        _turn_points(x, mu_turn[t], S_turn[t], N, D)
+        for i in range(d):
+            for j in range(d):
+                m2[i, j] = 0.0
+        for sp in range(6):
+            for bi in range(nb):
+                oi = offs[bi]
+                for a in range(3):
+                    da = D[sp, bi, a] / 6.0
+                    m1[oi + a] += da
+                    for bj in range(nb):
+                        oj = offs[bj]
+                        for c in range(3):
+                            m2[oi + a, oj + c] += da * D[sp, bj, c]
+        for i in range(d):
+            jm_i = sg[i] * m1[i]
+            for j in range(d):
+                comp = sg[i] * sg[j] * (P[i, j] + m2[i, j]) + v[i] * v[j]
+                comp += v[i] * sg[j] * m1[j] + jm_i * v[j]
+                out[i, j] += pt * (comp - Pc[i, j])
         out[_SA + t, _SA + t] += pt * math.pi * math.pi
 
 
@@ -695,6 +722,8 @@ def run_filter_kernel(
     R_GT,
     cov_frame,
     p_turn,
+    mu_turn,
+    S_turn,
     skip_start,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
@@ -702,8 +731,9 @@ def run_filter_kernel(
     (B,n,nom) the truth in the filter's frame or an empty array, ``out_x``/``out_P`` empty
     (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive).
     ``consider``: the 'consider' frame model, with the front end's frames ``R_GT`` (B,n,3,3,
-    NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite) and the probabilities
-    of their half turns ``p_turn`` (B,n,3). ``skip_start``: no update at the start epoch (a
+    NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite), the probabilities
+    of their half turns ``p_turn`` (B,n,3) and the frame error given each turn, ``mu_turn``
+    (B,n,3,3) and ``S_turn`` (B,n,3,3,3). ``skip_start``: no update at the start epoch (a
     refined start, ``ekf_dpacf.refine_start_pose``, has used it)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
@@ -719,7 +749,7 @@ def run_filter_kernel(
         ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
         R_used = np.eye(3)  # 'consider': the frame the state is in, and its covariance
         C_used = np.zeros((3, 3))
-        p_used = np.zeros(3)
+        k_used = 0
         P_rep = np.empty((d, d))
         for k in range(n):
             if k > 0 and active:
@@ -743,7 +773,7 @@ def run_filter_kernel(
                 active = True
             if active and consider and np.all(np.isfinite(R_GT[b, k])):
                 C_used[:, :] = cov_frame[b, k]
-                p_used[:] = p_turn[b, k]
+                k_used = k
                 if start:
                     R_used[:, :] = R_GT[b, k]
                 elif np.any(R_GT[b, k] != R_used):  # re-solved: F = R_T'G R_GT
@@ -785,7 +815,10 @@ def run_filter_kernel(
             report = active and (keep or (truth and k % nees_every == 0))
             if report:
                 if consider:
-                    _consider_cov(x, P, C_used, p_used, flips, N, P_rep)
+                    _consider_cov(
+                        x, P, C_used, p_turn[b, k_used], mu_turn[b, k_used], S_turn[b, k_used],
+                        flips, N, P_rep,
+                    )  # fmt: skip
                 else:
                     P_rep[:, :] = P
             if keep and active:

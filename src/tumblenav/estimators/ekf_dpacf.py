@@ -46,7 +46,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends import stereo_points
-from tumblenav.frontends.inertia import branch_probabilities, inertia_ratios, principal_frame
+from tumblenav.frontends.inertia import branch_statistics, inertia_ratios, principal_frame
 
 Array = NDArray[np.float64]
 
@@ -625,8 +625,36 @@ def _chol3(C: Array) -> Array:
     return L
 
 
+P_TURN_MIN = 1e-9  # half turns less likely than this are left out (= _hu_kernel.P_TURN_MIN)
+
+
+def _turn_moments(x: Array, mu: Array, S: Array, lay: StateLayout) -> tuple[Array, Array]:
+    """``E[D]`` (B, d) and ``E[D D^T]`` (B, d, d) of ``D(u) = turn(x, exp(u)) boxminus x =
+    [u; R(u) w - w; 0; 0; 0; R(u) f_i - f_i]`` for ``u ~ N(mu, S)`` (mu (B, 3), S (B, 3, 3)),
+    over the six sigma points ``mu +- sqrt(3) L e_i`` (``S = L L^T``; n = 3, kappa = 0: the
+    Gaussian's moments to the fourth)."""
+    B = x.shape[0]
+    N = (lay.nominal_dim - lay.nom("features").start) // 3
+    L = np.swapaxes(_chol3(np.nan_to_num(S)), -1, -2)
+    U = mu[:, None, :] + np.sqrt(3.0) * np.concatenate([L, -L], 1)  # (B, 6, 3)
+    R = rot.exp_map(U)  # (B, 6, 3, 3)
+    D = np.zeros((B, 6, lay.dim))
+    D[:, :, lay.err("attitude")] = U
+    w = x[:, None, lay.nom("rate"), None]
+    D[:, :, lay.err("rate")] = (R @ w)[..., 0] - w[..., 0]
+    f = x[:, lay.nom("features")].reshape(B, 1, N, 3)
+    D[:, :, lay.err("features")] = (f @ np.swapaxes(R, -1, -2) - f).reshape(B, 6, 3 * N)
+    return D.mean(axis=1), np.swapaxes(D, -1, -2) @ D / 6.0
+
+
 def frame_consider_cov(
-    x: Array, P: Array, cov_frame: Array, lay: StateLayout, p_turn: Array | None = None
+    x: Array,
+    P: Array,
+    cov_frame: Array,
+    lay: StateLayout,
+    p_turn: Array | None = None,
+    mu_turn: Array | None = None,
+    S_turn: Array | None = None,
 ) -> Array:
     """The covariance the filter reports with the 'consider' frame model (beyond the paper).
 
@@ -641,60 +669,68 @@ def frame_consider_cov(
     error in its frame plus the state turned by ``u`` minus the state, independent of it,
     so the reported covariance is ``P`` plus the second moment of
     ``D(u) = turn(x, exp(u)) boxminus x = [u; R(u) w - w; 0; 0; 0; R(u) f_i - f_i]``
-    (to first order ``Ju u``, :func:`frame_jacobian`). The second moment is taken over the
-    six sigma points ``u = +-sqrt(3) L e_i`` (``C = L L^T``; with n = 3 and kappa = 0 they
-    match the Gaussian's moments to the fourth): at 1e-6 rad the features' shape is known
-    to micrometres while the frame is known to a tenth of a degree, and the quadratic part
-    of the turn, ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn``
-    (B, 3), the half turns of the frame are added, :func:`branch_mixture_cov`."""
+    (to first order ``Ju u``, :func:`frame_jacobian`), over six sigma points
+    (:func:`_turn_moments`): at 1e-6 rad the features' shape is known to micrometres while
+    the frame is known to a tenth of a degree, and the quadratic part of the turn,
+    ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn`` (B, 3) (and the
+    frame error given each turn, ``mu_turn`` (B, 3, 3), ``S_turn`` (B, 3, 3, 3);
+    ``frontends.inertia.branch_statistics``) the half turns of the frame are added,
+    :func:`branch_mixture_cov`."""
     B = x.shape[0]
-    N = (lay.nominal_dim - lay.nom("features").start) // 3
-    L = _chol3(np.nan_to_num(cov_frame))
-    U = np.sqrt(3.0) * np.concatenate([np.swapaxes(L, -1, -2), -np.swapaxes(L, -1, -2)], 1)
-    R = rot.exp_map(U)  # (B, 6, 3, 3)
-    D = np.zeros((B, 6, lay.dim))
-    D[:, :, lay.err("attitude")] = U
-    w = x[:, None, lay.nom("rate"), None]
-    D[:, :, lay.err("rate")] = (R @ w)[..., 0] - w[..., 0]
-    f = x[:, lay.nom("features")].reshape(B, 1, N, 3)
-    D[:, :, lay.err("features")] = (f @ np.swapaxes(R, -1, -2) - f).reshape(B, 6, 3 * N)
-    out = P + np.swapaxes(D, -1, -2) @ D / 6.0
+    C = np.nan_to_num(cov_frame)
+    _, D2 = _turn_moments(x, np.zeros((B, 3)), C, lay)
+    out = P + D2
     if p_turn is not None:
-        out = branch_mixture_cov(x, out, p_turn, lay)
+        if mu_turn is None:  # the frame error given a turn: as without one
+            mu_turn = np.zeros((B, 3, 3))
+            S_turn = np.repeat(C[:, None], 3, axis=1)
+        out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay)
     return out
 
 
-def branch_mixture_cov(x: Array, P: Array, p_turn: Array, lay: StateLayout) -> Array:
+def branch_mixture_cov(
+    x: Array, P: Array, Pc: Array, p_turn: Array, mu_turn: Array, S_turn: Array, lay: StateLayout
+) -> Array:
     """Second moment about the filter's estimate of the two-branch mixture (B, d, d): with
-    probability ``p_a`` (``frontends.inertia.branch_probabilities``) the truth lies on the
+    probability ``p_a`` (``frontends.inertia.branch_statistics``) the truth lies on the
     frame turned by a half turn ``F_a`` about T's axis ``a`` (beyond the paper).
 
     The sign rules of the DPACF (Hu 2024 eq. 17) make the posterior bimodal near their
-    boundary: the estimate is on one branch, the truth may be on the other. On the turned
-    branch the error is ``Delta_a + J_a eps`` with ``Delta_a = [+-pi e_a; F_a w - w; 0; 0; 0;
-    F_a f_i - f_i]`` (the sign of the half-turn rotation vector is arbitrary) and ``J_a``
-    (``F_a`` on the attitude, rate and feature blocks, a diagonal of signs) turning the
-    filter's own error ``eps ~ N(0, P)``. So the covariance about the estimate (the mode) is
-    ``(1 - sum p_a) P + sum_a p_a (J_a P J_a + M_a)``, ``M_a`` the average of the two signs'
-    ``Delta Delta^T``: ``pi^2 e_a e_a^T`` on the attitude plus ``v v^T`` for the rest."""
-    B = x.shape[0]
+    boundary: the estimate is on one branch, the truth may be on the other. ``P``: the
+    filter's covariance; ``Pc``: its reported one on this branch (:func:`frame_consider_cov`).
+    On the turned branch the error is ``Delta_a + J_a (eps + D(u))``: ``Delta_a = [+-pi e_a;
+    F_a w - w; 0; 0; 0; F_a f_i - f_i]`` (the sign of the half-turn rotation vector is
+    arbitrary), ``J_a`` (``F_a`` on the attitude, rate and feature blocks, a diagonal of
+    signs) turning the filter's own error ``eps ~ N(0, P)`` and the frame error's effect
+    ``D(u)``, where, given the turn, ``u ~ N(mu_a, S_a)`` lies beyond the rule's margin.
+    So the covariance about the estimate (the mode) is ``(1 - sum p_a) Pc + sum_a p_a (J_a
+    (P + E[D D^T]) J_a + M_a + v E[D]^T J_a + J_a E[D] v^T)``, ``M_a`` the average over the
+    two signs of ``Delta Delta^T`` (``pi^2 e_a e_a^T`` on the attitude plus ``v v^T``, ``v``
+    the non-attitude part), turns with ``p_a <= P_TURN_MIN`` left out."""
     N = (lay.nominal_dim - lay.nom("features").start) // 3
     sa = lay.err("attitude")
-    w = x[:, lay.nom("rate")]
-    f = x[:, lay.nom("features")].reshape(B, N, 3)
-    out = P.copy()
+    out = Pc.copy()
     for a in range(3):
+        sel = np.flatnonzero(p_turn[:, a] > P_TURN_MIN)
+        if not len(sel):
+            continue
         F = _FLIPS[a]
         sg = np.ones(lay.dim)  # J_a = diag(sg)
         for name in ("attitude", "rate", "features"):
             sl = lay.err(name)
             sg[sl] = np.tile(np.diag(F), (sl.stop - sl.start) // 3)
-        v = np.zeros((B, lay.dim))
+        xs = x[sel]
+        w = xs[:, lay.nom("rate")]
+        f = xs[:, lay.nom("features")].reshape(len(sel), N, 3)
+        v = np.zeros((len(sel), lay.dim))
         v[:, lay.err("rate")] = w @ F.T - w
-        v[:, lay.err("features")] = (f @ F.T - f).reshape(B, -1)
-        pa = p_turn[:, a, None, None]
-        out += pa * (P * (np.outer(sg, sg) - 1.0) + v[:, :, None] * v[:, None, :])
-        out[:, sa.start + a, sa.start + a] += p_turn[:, a] * np.pi**2
+        v[:, lay.err("features")] = (f @ F.T - f).reshape(len(sel), -1)
+        m1, m2 = _turn_moments(xs, mu_turn[sel, a], S_turn[sel, a], lay)
+        Jm = m1 * sg
+        comp = (P[sel] + m2) * np.outer(sg, sg) + v[:, :, None] * v[:, None, :]
+        comp += v[:, :, None] * Jm[:, None, :] + Jm[:, :, None] * v[:, None, :]
+        comp[:, sa.start + a, sa.start + a] += np.pi**2
+        out[sel] += p_turn[sel, a, None, None] * (comp - Pc[sel])
     return out
 
 
@@ -721,17 +757,14 @@ def _turn_state(x, P, b, F, lay, f_first=None):
         f_first[b] = f_first[b] @ np.swapaxes(F, -1, -2)
 
 
-def _reframe(x, P, R_GT, cov_frame, p_turn, R_used, C_used, p_used, active, lay, f_first=None):
+def _reframe(x, P, R_GT, R_used, active, lay, f_first=None):
     """'consider' frame model: when the front end re-solves its DPACF frame (``R_GT`` (B,3,3),
     NaN where there is none), re-express the state in the new frame (:func:`_turn_state` with
-    ``F = R_T'G R_GT``, including the half turns of a branch change). ``R_used``, ``C_used``
-    (B,3,3), ``p_used`` (B,3): the frame each run's state is in, its covariance and its
-    half-turn probabilities (``p_turn``); updated in place."""
+    ``F = R_T'G R_GT``, including the half turns of a branch change). ``R_used`` (B,3,3): the
+    frame each run's state is in; updated in place. Returns the runs that have a frame now."""
     ok = active & np.all(np.isfinite(R_GT), axis=(-1, -2))
-    C_used[ok] = cov_frame[ok]
-    p_used[ok] = p_turn[ok]
     if not ok.any():
-        return
+        return ok
     R_new = np.where(ok[:, None, None], R_GT, np.eye(3))
     F = np.swapaxes(R_new, -1, -2) @ np.nan_to_num(R_used)
     move = ok & np.any(R_new != R_used, axis=(-1, -2))  # re-solved (frames are held between)
@@ -739,6 +772,7 @@ def _reframe(x, P, R_GT, cov_frame, p_turn, R_used, C_used, p_used, active, lay,
     if len(b):
         _turn_state(x, P, b, F[b], lay, f_first)
     R_used[ok] = R_GT[ok]
+    return ok
 
 
 def run_filter(
@@ -794,11 +828,13 @@ def run_filter(
     lay = layout(N)
     init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider, refine=refine)
     p_turn = np.zeros((B, n, 3))
+    mu_turn = np.zeros((B, n, 3, 3))
+    S_turn = np.zeros((B, n, 3, 3, 3))
     if consider and tun.branch_mixture:
         # the front end re-solves its frame every ls_every epochs and holds it in between
         every = stereo_points.FrontEndSettings().ls_every
-        solved = branch_probabilities(fe.R_GT[:, ::every], fe.cov_frame[:, ::every])
-        p_turn = np.repeat(solved, every, axis=1)[:, :n]
+        stat = branch_statistics(fe.R_GT[:, ::every], fe.cov_frame[:, ::every])
+        p_turn, mu_turn, S_turn = (np.repeat(a, every, axis=1)[:, :n] for a in stat)
     d = lay.dim
     x = np.tile(_neutral_state(lay), (B, 1))
     P = np.tile(np.eye(d), (B, 1, 1))
@@ -876,14 +912,15 @@ def run_filter(
             _neutral_state(lay), out_x if keep_history else empty(1),
             out_P if keep_history else empty(1, 1), nis, nis_dof,
             err if err is not None else empty(1), nees if nees is not None else empty(),
-            diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, refine,
+            diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
+            S_turn, refine,
         )  # fmt: skip
         return pack()
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
     srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
     R_used = np.full((B, 3, 3), np.nan)  # 'consider': the frame each run's state is in
-    C_used = np.zeros((B, 3, 3))  # and its covariance
-    p_used = np.zeros((B, 3))  # and the probabilities of its half turns
+    k_used = np.zeros(B, dtype=np.int64)  # and the epoch it is from (its statistics)
+    runs = np.arange(B)
     for k in range(n):
         if k > 0:
             dt = t[k] - t[k - 1]
@@ -912,8 +949,7 @@ def run_filter(
             active |= start
         if active.any():
             if consider:
-                _reframe(x, P, fe.R_GT[:, k], fe.cov_frame[:, k], p_turn[:, k], R_used, C_used,
-                         p_used, active, lay, f_first)  # fmt: skip
+                k_used[_reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)] = k
             if tun.dpacf_measurement == "frame":
                 use_att = "frame" if use_dpacf and k % tun.frame_meas_every == 0 else False
             else:
@@ -961,7 +997,10 @@ def run_filter(
             rejected += np.where(active, rej, 0)
         P_rep = P
         if consider and active.any() and (keep_history or k % nees_every == 0):
-            P_rep = frame_consider_cov(x, P, C_used, lay, p_used)
+            ku = (runs, k_used)
+            P_rep = frame_consider_cov(
+                x, P, fe.cov_frame[ku], lay, p_turn[ku], mu_turn[ku], S_turn[ku]
+            )
         if keep_history:
             out_x[active, k] = x[active]
             out_P[active, k] = P_rep[active]

@@ -462,7 +462,7 @@ def _bivariate_normal_cdf(h: Array, k: Array, rho: Array) -> Array:
     return np.clip(out, 0.0, np.minimum(stats.norm.cdf(h), stats.norm.cdf(k)))
 
 
-def branch_probabilities(R_GT: ArrayLike, cov_frame: ArrayLike) -> Array:
+def branch_statistics(R_GT: ArrayLike, cov_frame: ArrayLike) -> tuple[Array, Array, Array]:
     """Probability that the *true* inertia's DPACF frame is the half turn of ``R_GT`` about
     T's x, y or z axis: (..., 3) (beyond the paper).
 
@@ -480,8 +480,11 @@ def branch_probabilities(R_GT: ArrayLike, cov_frame: ArrayLike) -> Array:
     * both rules: about z_T, from the joint Gaussian of the two margins (rule 3 through its
       most likely j).
 
-    Returns ``[p(only rule 3), p(only rule 2), p(both)]`` (about x_T, y_T, z_T); zeros where the
-    frame or its covariance is not finite. Tested against sampling (tests/test_frontends.py).
+    Returns ``p = [p(only rule 3), p(only rule 2), p(both)]`` (about x_T, y_T, z_T), and for
+    each turn the mean (..., 3, 3) and covariance (..., 3, 3, 3) of ``u`` given it (a normal
+    truncated beyond the rule's margin; for both rules the sum of the two shifts, an
+    approximation); zeros where the frame or its covariance is not finite. Tested against
+    sampling (tests/test_frontends.py).
     """
     R = np.asarray(R_GT, dtype=float)
     C = np.asarray(cov_frame, dtype=float)
@@ -534,4 +537,30 @@ def branch_probabilities(R_GT: ArrayLike, cov_frame: ArrayLike) -> Array:
         both[joint] = _bivariate_normal_cdf(h[joint], best_z[joint], rho)
     both = np.minimum(both, np.minimum(p1, p2))
     out = np.stack([p2 - both, p1 - both, both], axis=-1)
-    return np.where(ok[..., None], np.clip(out, 0.0, 1.0), 0.0)
+    p = np.where(ok[..., None], np.clip(out, 0.0, 1.0), 0.0)
+    # Conditioned on a rule's flip, u is a normal truncated beyond the margin: with the unit
+    # gradient g (z = g^T u ~ N(0, 1), flip iff z < h), E[u | flip] = -C g lambda and
+    # Cov[u | flip] = C - C g g^T C (h lambda + lambda^2), lambda = phi(h) / Phi(h).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g1 = np.where((sd1 > 0)[..., None], a1 / np.where(sd1 > 0, sd1, 1.0)[..., None], 0.0)
+
+    def truncated(g: Array, hh: Array) -> tuple[Array, Array]:
+        hh = np.maximum(hh, -1e6)
+        lam = np.exp(stats.norm.logpdf(hh) - special.log_ndtr(hh))
+        Cg = (C @ g[..., None])[..., 0]
+        mean = -Cg * lam[..., None]
+        shrink = (hh * lam + lam * lam)[..., None, None] * (Cg[..., :, None] * Cg[..., None, :])
+        return mean, shrink
+
+    m1, s1 = truncated(g1, h)
+    m2, s2 = truncated(best_a, best_z)
+    mu = np.stack([m2, m1, m1 + m2], axis=-2)  # (..., 3 turns, 3)
+    S = np.stack([C - s2, C - s1, C - s1 - s2], axis=-3)  # (..., 3 turns, 3, 3)
+    mu = np.where(ok[..., None, None], np.nan_to_num(mu), 0.0)
+    S = np.where(ok[..., None, None, None], np.nan_to_num(S), 0.0)
+    return p, mu, S
+
+
+def branch_probabilities(R_GT: ArrayLike, cov_frame: ArrayLike) -> Array:
+    """The probabilities of :func:`branch_statistics` alone, (..., 3)."""
+    return branch_statistics(R_GT, cov_frame)[0]
