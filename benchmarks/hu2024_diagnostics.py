@@ -10,14 +10,18 @@ Three readings of hu2024 runs (the campaign's seeds), ekf-dpacf front end and fi
   ``cov_ratios`` (2 dof: the ratios obey one constraint) at the filter's start and over
   windows;
 * ``start``: for the runs given by ``--run``, the filter's errors and 1-sigma (square root of
-  the block's trace) per block at and after its start.
+  the block's trace) per block at and after its start;
+* ``branches``: front end only, are the half-turn probabilities calibrated? Their sum over
+  the runs (expected number of runs whose final frame is the truth's turned by a half turn)
+  against the number of such runs.
 
 Usage: python benchmarks/hu2024_diagnostics.py frame|ratios [--runs 40 | --run K ...]
        [--noise 2e-5]
        python benchmarks/hu2024_diagnostics.py start --run 475 [--run ...] [--noise 2e-5]
+       python benchmarks/hu2024_diagnostics.py branches --runs 500 [--noise 2e-5]
        [--set key=value ...]  (estimator.tuning overrides, YAML values)
 Last line: ``frame_nees_mean=<last window>`` / ``ratio_nees_start_mean=<...>`` /
-``start_attitude_err_over_sigma=<first run, at the start>``
+``start_attitude_err_over_sigma=<first run, at the start>`` / ``expected_flips=<sum p> flips=<runs>``
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import yaml
 from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import ekf_dpacf as hu
-from tumblenav.frontends.inertia import inertia_ratios, principal_frame
+from tumblenav.frontends.inertia import branch_probabilities, inertia_ratios, principal_frame
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
@@ -62,9 +66,31 @@ def per_window(t, v, label):
     return last
 
 
+def branch_calibration(sc, ks, batch: int = 50) -> None:
+    """Front end only: the half-turn probabilities of the final DPACF frame against the runs
+    whose final frame is the truth's turned by a half turn."""
+    tun = hu.parse_tuning(sc.estimator.tuning)
+    ps, flipped = [], []
+    for s0 in range(0, len(ks), batch):
+        part = ks[s0 : s0 + batch]
+        sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in part]
+        fe = hu.filter_view(hu.frontend([m for _, m in sims], tun), tun.max_dpacf_sigma_rad)
+        for b in range(len(part)):
+            if not np.all(np.isfinite(fe.R_GT[b, -1])):
+                continue
+            ps.append(branch_probabilities(fe.R_GT[b, -1], fe.cov_frame[b, -1]).sum())
+            Rc = true_frame(fe.template_G[b], fe.known[b], sims[b][0])
+            flipped.append(np.trace(Rc.T @ fe.R_GT[b, -1]) < 1.0)
+    ps, flipped = np.array(ps), np.array(flipped)
+    print(f"{len(ps)} runs with a final frame; sum of the half-turn probabilities "
+          f"{ps.sum():.2f}; runs on a turned frame {flipped.sum()} (their p: "
+          f"{np.round(ps[flipped], 3).tolist()}); runs with p > 0.01: {(ps > 0.01).sum()}")  # fmt: skip
+    print(f"expected_flips={ps.sum():.3g} flips={flipped.sum()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["frame", "ratios", "start"])
+    ap.add_argument("what", choices=["frame", "ratios", "start", "branches"])
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--run", type=int, action="append", default=[])
     ap.add_argument("--noise", type=float, default=2e-5)
@@ -77,6 +103,9 @@ def main() -> None:
         tuning[k] = yaml.safe_load(v)
     sc = sc.with_updates(**{"sensor.noise.angular_rad": args.noise, "estimator.tuning": tuning})
     ks = args.run if args.run else list(range(args.runs))
+    if args.what == "branches":
+        branch_calibration(sc, ks)
+        return
     sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in ks]
     truths = [t for t, _ in sims]
     res = hu.run_filter(sc, [m for _, m in sims], True, truths=truths, nees_every=10)
