@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import yaml
+from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import ekf_dpacf as hu
@@ -44,12 +44,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=5, help="epochs between NEES samples")
     ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    sc = load_scenario(args.scenario)
-    tuning = dict(sc.estimator.tuning)
-    for kv in args.set:
-        k, v = kv.split("=", 1)
-        tuning[k] = yaml.safe_load(v)
-    sc = sc.with_updates(**{"sensor.noise.angular_rad": args.noise, "estimator.tuning": tuning})
+    sc = with_tuning(
+        load_scenario(args.scenario), args.set, **{"sensor.noise.angular_rad": args.noise}
+    )
     t0, t1 = sc.window_s
     rows = []
     last = args.first + args.runs

@@ -30,7 +30,7 @@ import argparse
 import warnings
 
 import numpy as np
-import yaml
+from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
 from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
@@ -96,12 +96,7 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=2e-5)
     ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    sc = load_scenario("hu2024")
-    tuning = dict(sc.estimator.tuning)
-    for kv in args.set:
-        k, v = kv.split("=", 1)
-        tuning[k] = yaml.safe_load(v)
-    sc = sc.with_updates(**{"sensor.noise.angular_rad": args.noise, "estimator.tuning": tuning})
+    sc = with_tuning(load_scenario("hu2024"), args.set, **{"sensor.noise.angular_rad": args.noise})
     ks = args.run if args.run else list(range(args.runs))
     if args.what == "branches":
         branch_calibration(sc, ks)

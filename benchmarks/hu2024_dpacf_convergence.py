@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import yaml
+from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
 from tumblenav.pipeline import run_montecarlo
 from tumblenav.scenario import load_scenario
@@ -46,12 +46,7 @@ def main() -> None:
     ap.add_argument("--noise", type=float, nargs="*", default=list(NOISE_RAD))
     ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    base = load_scenario("hu2024")
-    tuning = dict(base.estimator.tuning)
-    for kv in args.set:
-        key, value = kv.split("=", 1)
-        tuning[key] = yaml.safe_load(value)
-    base = base.with_updates(**{"estimator.tuning": tuning})
+    base = with_tuning(load_scenario("hu2024"), args.set)
     firsts, below5 = [], []
     print(
         "| noise [rad] | first DPACF, median of all runs [s] | available runs' median < 5 / < 1 deg from [s] | all runs' median < 5 / < 1 deg from [s] | all runs' median at 50 / 200 s [deg] |"

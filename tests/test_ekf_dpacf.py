@@ -628,6 +628,15 @@ def test_compiled_nees_equals_solve(seed, pd):
     assert np.isclose(_hu_kernel._nees(P, e), e @ np.linalg.solve(P, e), rtol=1e-8)
 
 
+def _random_state(rng: np.random.Generator, n_feat: int) -> tuple:
+    """A layout for ``n_feat`` features and one random nominal state (1, nominal_dim)."""
+    lay = hu.layout(n_feat)
+    x = np.zeros((1, lay.nominal_dim))
+    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
+    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    return lay, x
+
+
 @given(seed=seeds, which=st.integers(0, 2), need=st.integers(1, 4))
 def test_compiled_branch_following_equals_numpy(seed, which, need):
     """A DPACF attitude a half turn away for ``need`` epochs turns the state (q, omega, f, P)
@@ -637,10 +646,7 @@ def test_compiled_branch_following_equals_numpy(seed, which, need):
 
     rng = np.random.default_rng(seed)
     N = 3
-    lay = hu.layout(N)
-    x = np.zeros((1, lay.nominal_dim))
-    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
-    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    lay, x = _random_state(rng, N)
     A = rng.normal(size=(lay.dim, lay.dim))
     P = (A @ A.T)[None]
     q_turned = rot.quat_multiply(rot.matrix_to_quat(hu._FLIPS[which]), x[0, :4])
@@ -673,10 +679,7 @@ def test_frame_jacobian_against_finite_differences(seed, n_feat):
     """``frame_jacobian`` is d(turn(x, exp(u)) boxminus x)/du: re-expressing the state in a
     frame turned by a small rotation u (``_turn_state``) moves the error state by Ju u."""
     rng = np.random.default_rng(seed)
-    lay = hu.layout(n_feat)
-    x = np.zeros((1, lay.nominal_dim))
-    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
-    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    lay, x = _random_state(rng, n_feat)
     Ju = hu.frame_jacobian(x, lay)[0]
     eps = 1e-6
     for a in range(3):
@@ -696,10 +699,7 @@ def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
     from tumblenav.estimators import _hu_kernel
 
     rng = np.random.default_rng(seed)
-    lay = hu.layout(n_feat)
-    x = np.zeros((1, lay.nominal_dim))
-    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
-    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    lay, x = _random_state(rng, n_feat)
     A = rng.normal(size=(lay.dim, lay.dim))
     P = (A @ A.T)[None]
     F = hu._FLIPS[half] if half >= 0 else rot.quat_to_matrix(rng.normal(size=4))
@@ -737,10 +737,7 @@ def test_frame_consider_cov_is_the_second_moment_of_the_turned_state():
     where the quadratic part of the turn counts; also its mean (the second-order offset of
     the features towards the turn axis), which the sigma points match exactly."""
     rng = np.random.default_rng(8)
-    lay = hu.layout(3)
-    x = np.zeros((1, lay.nominal_dim))
-    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
-    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    lay, x = _random_state(rng, 3)
     P = np.zeros((1, lay.dim, lay.dim))
     A = rng.normal(size=(3, 3))
     C = A @ A.T / np.trace(A @ A.T)
@@ -770,10 +767,7 @@ def test_branch_mixture_cov_covers_the_half_turns():
     F w - w; 0; 0; 0; F f - f]: the mixture's covariance about the estimate is
     (1 - p) P + p (J P J^T + the average of Delta Delta^T over the two signs)."""
     rng = np.random.default_rng(5)
-    lay = hu.layout(2)
-    x = np.zeros((1, lay.nominal_dim))
-    x[0, :4] = rot.quat_normalize(rng.normal(size=4))
-    x[0, 4:] = rng.normal(size=lay.nominal_dim - 4)
+    lay, x = _random_state(rng, 2)
     for a in range(3):
         p = np.zeros((1, 3))
         p[0, a] = 0.25

@@ -590,6 +590,31 @@ def _hu_measurements(n_runs, seed, **updates):
     return [simulate(s, run_seed(seed, k))[1] for k in range(n_runs)]
 
 
+@given(seed=st.integers(0, 2**32 - 1), noise=st.sampled_from([0.0, 1e-3, 0.1, 10.0]))
+def test_kabsch_rotation_equals_the_svd_solution(seed, noise):
+    """Horn's quaternion method (compiled) against the SVD with the reflection guard, for
+    rigid point sets with noise up to pure noise (reflections included), and the collinear
+    case (second singular value 0)."""
+    from tumblenav.frontends import _points_kernel
+
+    rng = np.random.default_rng(seed)
+    g = rng.normal(size=(50, 6, 3))
+    R_true = Rotation.random(50, random_state=rng.integers(2**31)).as_matrix()
+    p = g @ np.swapaxes(R_true, -1, -2) + noise * rng.normal(size=g.shape)
+    gc, pc = g - g.mean(1, keepdims=True), p - p.mean(1, keepdims=True)
+    H = np.swapaxes(gc, -1, -2) @ pc
+    R, ratio = _points_kernel.kabsch_rotation(H)
+    U, S, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.tile(np.eye(3), (50, 1, 1))
+    D[:, 2, 2] = d
+    np.testing.assert_allclose(R, np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2), atol=1e-9)
+    np.testing.assert_allclose(ratio, S[:, 1] / S[:, 0], atol=1e-12)
+    line = np.outer(np.arange(6.0), [1.0, 2.0, 0.5])[None]  # collinear points
+    lc = line - line.mean(1, keepdims=True)
+    assert _points_kernel.kabsch_rotation(np.swapaxes(lc, -1, -2) @ lc)[1][0] < 1e-9
+
+
 def test_compiled_triangulation_equals_numpy():
     """Points, covariances (in C and L), masks and skip counts of the compiled parallel-rig
     loop equal :func:`stereo_points.triangulate` and its rotation into L, including features

@@ -145,14 +145,10 @@ def weighted_kabsch(
         np.ascontiguousarray(w, dtype=float),
     )  # Hm = sum w g p^T of the centred points, info = sum w (|a|^2 I - a a^T), a = p - pc
     ok = (cnt >= 3) & (sw > 0)
-    U, S, Vt = np.linalg.svd(Hm)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-    D = np.zeros_like(Hm)
-    D[:, 0, 0] = 1.0
-    D[:, 1, 1] = 1.0
-    D[:, 2, 2] = np.where(d == 0, 1.0, d)
-    R_CG = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
-    ok &= S[:, 1] > 1e-9 * np.maximum(S[:, 0], 1e-300)  # not collinear
+    # the proper rotation of the SVD solution (V diag(1, 1, det) U^T), by Horn's quaternion
+    # method in a compiled loop (twice as fast as the batched SVD; test against it)
+    R_CG, sv_ratio = _points_kernel.kabsch_rotation(Hm)
+    ok &= sv_ratio > 1e-9  # not collinear
     o = pc - np.einsum("bij,bj->bi", R_CG, gc)
     # info: information of a small rotation of the lever arms a_i (C frame),
     # sum w [a x]^T [a x] with [a x]^T [a x] = |a|^2 I - a a^T
