@@ -170,7 +170,7 @@ class HuTuning(BaseModel):
         True,
         description="with dpacf_frame_error 'consider': the reported covariance also holds "
         "the half turns of the frame, weighted by the probability that the true inertia "
-        "selects them (frontends.inertia.branch_probabilities; beyond the paper)",
+        "selects them (frontends.inertia.branch_statistics; beyond the paper)",
     )
     max_ratio_wait_s: float = Field(
         30.0,
