@@ -672,18 +672,15 @@ def frame_consider_cov(
     (to first order ``Ju u``, :func:`frame_jacobian`), over six sigma points
     (:func:`_turn_moments`): at 1e-6 rad the features' shape is known to micrometres while
     the frame is known to a tenth of a degree, and the quadratic part of the turn,
-    ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn`` (B, 3) (and the
-    frame error given each turn, ``mu_turn`` (B, 3, 3), ``S_turn`` (B, 3, 3, 3);
-    ``frontends.inertia.branch_statistics``) the half turns of the frame are added,
+    ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn`` (B, 3) and the
+    frame error given each turn, ``mu_turn`` (B, 3, 3) and ``S_turn`` (B, 3, 3, 3), all three
+    from ``frontends.inertia.branch_statistics``, the half turns of the frame are added,
     :func:`branch_mixture_cov`."""
     B = x.shape[0]
     C = np.nan_to_num(cov_frame)
     _, D2 = _turn_moments(x, np.zeros((B, 3)), C, lay)
     out = P + D2
     if p_turn is not None:
-        if mu_turn is None:  # the frame error given a turn: as without one
-            mu_turn = np.zeros((B, 3, 3))
-            S_turn = np.repeat(C[:, None], 3, axis=1)
         out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay)
     return out
 
