@@ -11,16 +11,18 @@ Three readings of hu2024 runs (the campaign's seeds), ekf-dpacf front end and fi
   windows;
 * ``start``: for the runs given by ``--run``, the filter's errors and 1-sigma (square root of
   the block's trace) per block at and after its start;
+* ``g``: the photogrammetric frame's attitude of every epoch against the truth's G (the
+  template aligned to the true features), its error and NEES/dof with ``cov_G``;
 * ``branches``: front end only, are the half-turn probabilities calibrated? Their sum over
   the runs (expected number of runs whose final frame is the truth's turned by a half turn)
   against the number of such runs.
 
-Usage: python benchmarks/hu2024_diagnostics.py frame|ratios [--runs 40 | --run K ...]
+Usage: python benchmarks/hu2024_diagnostics.py frame|ratios|g [--runs 40 | --run K ...]
        [--noise 2e-5]
        python benchmarks/hu2024_diagnostics.py start --run 475 [--run ...] [--noise 2e-5]
        python benchmarks/hu2024_diagnostics.py branches --runs 500 [--noise 2e-5]
        [--set key=value ...]  (estimator.tuning overrides, YAML values)
-Last line: ``frame_nees_mean=<last window>`` / ``ratio_nees_start_mean=<...>`` /
+Last line: ``frame_nees_mean=<last window>`` / ``g_nees_mean=<last window>`` / ``ratio_nees_start_mean=<...>`` /
 ``start_attitude_err_over_sigma=<first run, at the start>`` / ``expected_flips=<sum p> flips=<runs>``
 """
 
@@ -90,7 +92,7 @@ def branch_calibration(sc, ks, batch: int = 50) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["frame", "ratios", "start", "branches"])
+    ap.add_argument("what", choices=["frame", "ratios", "start", "branches", "g"])
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--run", type=int, action="append", default=[])
     ap.add_argument("--noise", type=float, default=2e-5)
@@ -105,7 +107,31 @@ def main() -> None:
     truths = [t for t, _ in sims]
     res = hu.run_filter(sc, [m for _, m in sims], True, truths=truths, nees_every=10)
     fe, t = res["frontend"], res["t"]
-    if args.what == "frame":
+    if args.what == "g":  # the G attitude of each epoch against the truth's G
+        v = np.full(fe.R_GI.shape[:2], np.nan)
+        vw = np.full(fe.R_GI.shape[:2], np.nan)
+        err = np.full(fe.R_GI.shape[:2], np.nan)
+        for b, tr in enumerate(truths):
+            g, f = fe.template_G[b][fe.known[b]], tr.features_T[fe.known[b]]
+            U, _, Vt = np.linalg.svd((f - f.mean(0)).T @ (g - g.mean(0)))
+            D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+            R_GIt = (Vt.T @ D @ U.T) @ rot.quat_to_matrix(tr.q_TI)
+            ok = np.all(np.isfinite(fe.R_GI[b]), axis=(-1, -2))
+            e = rot.log_map(fe.R_GI[b, ok] @ np.swapaxes(R_GIt[ok], -1, -2))
+            err[b, ok] = np.degrees(np.linalg.norm(e, axis=-1))
+            v[b, ok] = np.einsum("ki,kij,kj->k", e, np.linalg.inv(fe.cov_G[b, ok]), e) / 3
+            # the rate of G against the truth's, NEES/dof with its full covariance
+            okw = np.all(np.isfinite(fe.omega_G[b]), axis=-1)
+            ew = fe.omega_G[b, okw] - ((Vt.T @ D @ U.T) @ tr.omega_TI_T[okw].T).T
+            Cw = fe.cov_omega[b, okw]
+            vw[b, okw] = np.einsum("ki,kij,kj->k", ew, np.linalg.inv(Cw), ew) / 3
+        for w in WINDOWS:
+            m = (t >= w[0]) & (t <= w[1])
+            print(f"G attitude {w}: error median {np.nanmedian(err[:, m]):.3g} deg, p90 "
+                  f"{np.nanpercentile(err[:, m], 90):.3g} deg")  # fmt: skip
+        per_window(t, vw, "rate of G")
+        print(f"g_nees_mean={per_window(t, v, 'G attitude'):.3g}")
+    elif args.what == "frame":
         v = np.full(fe.R_GT.shape[:2], np.nan)
         for b, tr in enumerate(truths):
             Rc = true_frame(fe.template_G[b], fe.known[b], tr)
@@ -119,6 +145,19 @@ def main() -> None:
                 sd = np.degrees(np.sqrt(np.diag(fe.cov_frame[b, -1])))
                 print(f"run {k}: frame error at the end {np.round(e, 2)} deg, 1-sigma "
                       f"{np.round(sd, 2)} deg")  # fmt: skip
+        # the DPACF attitude measurement q_T'I = q_T'G q_GI against the exact truth (the true
+        # principal frame, snapped to the DPACF convention: no template in the truth), with
+        # its covariance cov_TI (frame part + G attitude part)
+        va = np.full(fe.R_GT.shape[:2], np.nan)
+        for b, tr in enumerate(truths):
+            R_TcT = hu.canonical_frame(fe.template_G[b], fe.known[b], tr)
+            qt = rot.quat_multiply(rot.matrix_to_quat(R_TcT), tr.q_TI)
+            ok = np.all(np.isfinite(fe.q_TI[b]), -1) & np.all(np.isfinite(fe.cov_TI[b]), (-1, -2))
+            e = rot.log_map(
+                rot.quat_to_matrix(fe.q_TI[b, ok]) @ np.swapaxes(rot.quat_to_matrix(qt[ok]), -1, -2)
+            )
+            va[b, ok] = np.einsum("ki,kij,kj->k", e, np.linalg.inv(fe.cov_TI[b, ok]), e) / 3
+        per_window(t, va, "DPACF attitude (exact truth)")
         print(f"frame_nees_mean={per_window(t, v, 'DPACF frame'):.3g}")
     elif args.what == "ratios":
         e = inertia_ratios(fe.moments) - res["x_true"][:, -1:, 7:10]

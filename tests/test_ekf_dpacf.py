@@ -539,14 +539,17 @@ def test_frame_measurement_and_its_jacobian():
     "use_dpacf, tuning, noise, duration, runs, expect",
     [
         (True, {}, 2e-5, 90.0, 3, "start"),
-        (False, {}, 2e-5, 90.0, 3, "start"),
+        # ekf-baseline: since the full-covariance G fit both filters start at 15.5-16 s
+        # instead of 31 s or later; run 1 of these seeds then diverges, so runs 3-5
+        (False, {}, 2e-5, 90.0, [3, 4, 5], "start"),
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 0-2 of these seeds
-        (False, {"constraint_curvature": True}, 1e-6, 200.0, 4, "diverge"),
-        # at 5e-5 rad run 1 never gets a DPACF frame good enough to start
-        (True, {}, 5e-5, 100.0, 2, "never"),
+        # ekf-baseline with the curvature term diverges in runs 0, 1 and 3 of these seeds
+        (False, {"constraint_curvature": True}, 1e-6, 200.0, [0, 1, 3, 2], "diverge"),
+        # at 5e-5 rad, asking for a DPACF frame within 0.005 rad, run 6 starts at 57.5 s and
+        # run 0 never does (with the default 0.05 rad every run starts by 22.5 s)
+        (True, {"max_dpacf_sigma_rad": 0.005}, 5e-5, 100.0, [6, 0], "never"),
     ],
 )
 def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration, runs, expect):
@@ -563,7 +566,8 @@ def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration,
         steady_state_window_s=[duration - 10.0, duration],
         **{"sensor.noise.angular_rad": noise, "estimator.tuning": tuning},
     )
-    sims = [simulate(s, run_seed(11, k)) for k in range(runs)]
+    ks = range(runs) if isinstance(runs, int) else runs
+    sims = [simulate(s, run_seed(11, k)) for k in ks]
     meas, truths = [m for _, m in sims], [t for t, _ in sims]
     a = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="compiled")
     b = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="numpy")
@@ -582,7 +586,11 @@ def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration,
     # occlusion, in both engines alike (a review measured it with fastmath on and off):
     # there, values are compared before the occlusion (60 s) and 100x looser; the masks,
     # starts and divergence epochs everywhere
-    loose = 100.0 if expect == "diverge" else 1.0
+    # ekf-baseline (no DPACF), started at 16 s, amplifies rounding faster than ekf-dpacf
+    # (its free principal frame is weakly determined early on): measured on runs 3-5 at
+    # 2e-5 rad, the largest engine differences were 1.1 (x, err), 2.1 (P, NIS) times the
+    # strict tolerance, so its comparison is 10x looser; an algorithmic difference is O(1)
+    loose = 100.0 if expect == "diverge" else (1.0 if use_dpacf else 10.0)
     upto = a["t"] < 60.0 if expect == "diverge" else np.ones(len(a["t"]), dtype=bool)
     for key, atol in (("x", 1e-6), ("err", 1e-6), ("P", 1e-8), ("nis", 1e-5)):
         assert np.array_equal(np.isfinite(a[key]), np.isfinite(b[key])), key
@@ -593,7 +601,7 @@ def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration,
     assert np.array_equal(np.isfinite(a["nees"]), fin)
     if expect != "diverge":
         assert fin.sum() > 20
-        assert np.allclose(a["nees"][fin], b["nees"][fin], rtol=1e-5)
+        assert np.allclose(a["nees"][fin], b["nees"][fin], rtol=1e-5 * loose)
 
 
 def test_compiled_engine_refuses_what_it_does_not_cover():
@@ -818,10 +826,12 @@ def test_refine_start_pose_recovers_the_pose_with_an_honest_covariance():
 
 
 def test_start_waits_for_the_ratios_but_not_forever():
-    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 17.5 s
-    but the least-squares ratios are 0.27 off with 1-sigma 0.1 (docs/results/hu2024.md);
-    with ``max_ratio_sigma`` the filter starts once they are below 0.03, and never later
-    than ``max_ratio_wait_s`` after the frame was ready; both estimators start together."""
+    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 13.5 s
+    (17.5 s before the full-covariance G fit, when the least-squares ratios were then 0.27
+    off with 1-sigma 0.1, docs/results/hu2024.md; now the default gate of 0.03 no longer
+    delays this run). Asking for ratios within 0.005, the filter waits for them, and never
+    longer than ``max_ratio_wait_s`` after the frame was ready; both estimators start
+    together."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
@@ -837,11 +847,10 @@ def test_start_waits_for_the_ratios_but_not_forever():
         return float(res["t"][res["k0"][0]])
 
     free = start(max_ratio_sigma=None)
-    gated = start()
-    assert 15.0 < free < 20.0 and gated > free + 5.0
-    assert start(False) == gated  # ekf-baseline starts at the same epoch
-    # the frame is good enough from 17.5 to 19.5 s and again from 33.5 s
-    assert free < start(max_ratio_wait_s=1.0) <= free + 1.0 + 1e-9
+    gated = start(max_ratio_sigma=0.005)
+    assert 12.0 < free < 16.0 and gated > free + 5.0
+    assert start(False, max_ratio_sigma=0.005) == gated  # ekf-baseline starts then too
+    assert free < start(max_ratio_sigma=0.005, max_ratio_wait_s=1.0) <= free + 1.0 + 1e-9
 
 
 def test_mass_centre_from_rotation_finds_the_mass_centre():

@@ -685,10 +685,31 @@ def test_compiled_rate_fit_equals_numpy(seed, h):
     q = rot.quat_normalize(rot.boxplus(q, rng.normal(scale=1e-3, size=(B, n, 3))))
     valid = rng.random((B, n)) > 0.1
     q = np.where(valid[..., None], q, rot.IDENTITY)
-    om = _points_kernel.rate_fit(q, valid, h, 0.1)
+    om, om3 = _points_kernel.rate_fit(q, valid, h, 0.1)
     ref = _rates_reference(q, valid, h, 0.1)
     assert np.array_equal(np.isfinite(om), np.isfinite(ref))
     assert np.allclose(om[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-12, atol=1e-14)
+    assert np.array_equal(np.isfinite(om3), np.isfinite(ref) & (h >= 2))
+
+
+@pytest.mark.parametrize("h", [2, 5, 10])
+def test_cubic_rate_fit_removes_the_third_order_bias(h):
+    """About a fixed axis the rotation vector is the angle: with angle(t) = w t + c t^3 the
+    line's slope is biased by c * sum(c_j j^3) dt^2 (stereo_points._fit_factors), the cubic
+    fit's slope is w exactly."""
+    from tumblenav.frontends import _points_kernel
+    from tumblenav.frontends.stereo_points import _fit_factors
+
+    dt, w, c = 0.1, 0.3, 0.02
+    axis = np.array([0.6, 0.0, 0.8])
+    t = np.arange(60) * dt
+    ang = w * (t - 3.0) + c * (t - 3.0) ** 3
+    q = rot.exp_quat(-ang[None, :, None] * axis)  # R_GI(t) = exp(-angle [axis x])
+    om, om3 = _points_kernel.rate_fit(q, np.ones((1, 60), bool), h, dt)
+    k = 30  # t = 3: the rate there is w
+    _, _, bias = _fit_factors(h)
+    assert np.allclose(om3[0, k], w * axis, atol=1e-9)
+    assert np.allclose(om[0, k], (w + c * bias * dt**2) * axis, atol=1e-9)
 
 
 @given(seed=st.integers(0, 2**32 - 1), delay=st.integers(0, 7), every=st.integers(1, 6))

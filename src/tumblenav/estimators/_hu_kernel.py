@@ -725,6 +725,7 @@ def run_filter_kernel(
     mu_turn,
     S_turn,
     skip_start,
+    att_update,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
@@ -734,7 +735,8 @@ def run_filter_kernel(
     NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite), the probabilities
     of their half turns ``p_turn`` (B,n,3) and the frame error given each turn, ``mu_turn``
     (B,n,3,3) and ``S_turn`` (B,n,3,3,3). ``skip_start``: no update at the start epoch (a
-    refined start, ``ekf_dpacf.refine_start_pose``, has used it)."""
+    refined start, ``ekf_dpacf.refine_start_pose``, has used it). ``att_update``: update with
+    the attitude measurement (else it only votes on the half turns)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     keep = out_x.shape[1] > 0
@@ -788,6 +790,7 @@ def run_filter_kernel(
                     )
                     if turned:
                         flip_count[b] += 1
+                use_att = use_att and att_update
                 if fej:
                     for i in range(N):
                         fresh = (start and known_at[b, k, i]) or (

@@ -153,6 +153,15 @@ class HuTuning(BaseModel):
         "(beyond the paper, see frame_consider_cov); default: 'consider' for ekf-dpacf with "
         "dpacf_measurement 'attitude', else 'white'",
     )
+    attitude_update: bool | None = Field(
+        None,
+        description="update with the DPACF attitude of Hu 2024 eq. 31. With "
+        "dpacf_frame_error 'consider' that measurement is only the G attitude, a fit to the "
+        "same feature points as the feature measurements (eq. 32-35): fusing both counts "
+        "those points twice (beyond the paper). Default: off with 'consider' (the DPACF "
+        "frame enters as the frame the state is expressed in, its half-turn votes still "
+        "use the attitude), on with 'white'",
+    )
     refine_start: bool | None = Field(
         None,
         description="start from a Gauss-Newton fit of the attitude and position to the start "
@@ -181,6 +190,11 @@ class HuTuning(BaseModel):
     )
     rate_half_window: int = Field(10, ge=1)
     min_ls_epochs: int = Field(50, ge=3)
+    g_attitude_fit: Literal["full", "kabsch"] = Field(
+        "full",
+        description="G attitude per epoch: 'full' refines the Kabsch fit in the metric of the "
+        "triangulated points' covariances (beyond the paper); 'kabsch' is the isotropic fit",
+    )
 
 
 def parse_tuning(raw: dict[str, Any]) -> HuTuning:
@@ -804,6 +818,8 @@ def run_filter(
             "'attitude' only"
         )
     consider = use_dpacf and tun.dpacf_frame_error == "consider"
+    if tun.attitude_update is None:
+        tun = tun.model_copy(update={"attitude_update": not consider})
     refine = use_dpacf if tun.refine_start is None else tun.refine_start
     s_t2 = (
         tun.sigma_t2_m2_s4
@@ -910,7 +926,7 @@ def run_filter(
             out_P if keep_history else empty(1, 1), nis, nis_dof,
             err if err is not None else empty(1), nees if nees is not None else empty(),
             diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
-            S_turn, refine,
+            S_turn, refine, bool(tun.attitude_update),
         )  # fmt: skip
         return pack()
     sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
@@ -950,7 +966,7 @@ def run_filter(
             if tun.dpacf_measurement == "frame":
                 use_att = "frame" if use_dpacf and k % tun.frame_meas_every == 0 else False
             else:
-                use_att = use_dpacf and (k % tun.attitude_meas_every == 0)
+                use_att = use_dpacf and tun.attitude_update and (k % tun.attitude_meas_every == 0)
             # a refined start has used its epoch's measurements already (refine_start_pose)
             upd = active & ~start if refine else active
             if use_dpacf and k % tun.attitude_meas_every == 0:
@@ -1366,6 +1382,7 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
             rate_half_window=tun.rate_half_window,
             min_ls_epochs=tun.min_ls_epochs,
             max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
+            g_fit=tun.g_attitude_fit,
         ),
     )
     fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

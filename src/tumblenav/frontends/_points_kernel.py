@@ -144,17 +144,25 @@ def _qmul(a, b, out):
 @njit(cache=True, error_model="numpy")
 def rate_fit(q, valid, h, dt):
     """``stereo_points.rates_from_G`` after its quaternion conversion: the symmetric
-    least-squares slope of ``log(q(k+j) (x) conj(q(k)))`` over ``j = -h..h``.
+    least-squares slopes of ``log(q(k+j) (x) conj(q(k)))`` over ``j = -h..h``, of a line
+    and of a line plus a cubic term.
 
     q (B,n,4) unit quaternions of R_GI (identity where not valid), valid (B,n). Returns
-    omega (B,n,3), NaN where any epoch of the window is missing."""
+    omega (B,n,3) of the linear fit and omega (B,n,3) of the cubic one, NaN where any epoch
+    of the window is missing (the cubic one also for h = 1)."""
     B, n = valid.shape
     omega = np.full((B, n, 3), np.nan)
-    sjj = 0.0
+    omega3 = np.full((B, n, 3), np.nan)
+    s2 = s4 = s6 = 0.0
     for j in range(1, h + 1):
-        sjj += 2.0 * j * j
+        s2 += 2.0 * j**2
+        s4 += 2.0 * j**4
+        s6 += 2.0 * j**6
+    det = s2 * s6 - s4 * s4
     qc = np.empty(4)
     m = np.empty(4)
+    num = np.empty(3)
+    num3 = np.empty(3)
     for b in range(B):
         for k in range(n):
             good = valid[b, k]
@@ -167,7 +175,8 @@ def rate_fit(q, valid, h, dt):
             if not good:
                 continue
             qc[0], qc[1], qc[2], qc[3] = -q[b, k, 0], -q[b, k, 1], -q[b, k, 2], q[b, k, 3]
-            num0 = num1 = num2 = 0.0
+            num[:] = 0.0
+            num3[:] = 0.0
             for j in range(1, h + 1):
                 for s in (1, -1):
                     _qmul(q[b, k + s * j], qc, m)
@@ -178,13 +187,19 @@ def rate_fit(q, valid, h, dt):
                                       sg * m[3] / nrm)  # fmt: skip
                     sv = math.sqrt(vx * vx + vy * vy + vz * vz)
                     kk = 2.0 / ww if sv < 1e-8 else 2.0 * math.atan2(sv, ww) / sv
-                    num0 += s * j * kk * vx
-                    num1 += s * j * kk * vy
-                    num2 += s * j * kk * vz
-            omega[b, k, 0] = -num0 / (dt * sjj)
-            omega[b, k, 1] = -num1 / (dt * sjj)
-            omega[b, k, 2] = -num2 / (dt * sjj)
-    return omega
+                    sj = s * j
+                    num[0] += sj * kk * vx
+                    num[1] += sj * kk * vy
+                    num[2] += sj * kk * vz
+                    sj3 = sj * j * j
+                    num3[0] += sj3 * kk * vx
+                    num3[1] += sj3 * kk * vy
+                    num3[2] += sj3 * kk * vz
+            for a in range(3):
+                omega[b, k, a] = -num[a] / (dt * s2)
+                if det > 0.0:  # h >= 2
+                    omega3[b, k, a] = -(s6 * num[a] - s4 * num3[a]) / (dt * det)
+    return omega, omega3
 
 
 @njit(cache=True, error_model="numpy")
@@ -376,3 +391,327 @@ def kabsch_rotation(H):
         mid = sv[0] + sv[1] + sv[2] - hi - lo
         ratio[m] = mid / hi if hi > 0 else 0.0
     return R, ratio
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _inv3_sym(C, out):
+    """Inverse of a symmetric 3x3 matrix by cofactors; False if not positive definite."""
+    a, b, c = C[0, 0], C[0, 1], C[0, 2]
+    d, e, f = C[1, 1], C[1, 2], C[2, 2]
+    A00 = d * f - e * e
+    A01 = c * e - b * f
+    A02 = b * e - c * d
+    det = a * A00 + b * A01 + c * A02
+    if not (det > 0.0 and a > 0.0 and a * d - b * b > 0.0):
+        return False
+    out[0, 0] = A00 / det
+    out[0, 1] = out[1, 0] = A01 / det
+    out[0, 2] = out[2, 0] = A02 / det
+    out[1, 1] = (a * f - c * c) / det
+    out[1, 2] = out[2, 1] = (b * c - a * e) / det
+    out[2, 2] = (a * d - b * b) / det
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _chol_solve6(A, g, L, x):
+    """Solve the symmetric positive definite 6x6 ``A x = g`` by Cholesky (``L`` scratch);
+    False if ``A`` is not numerically positive definite."""
+    n = 6
+    for i in range(n):
+        for j in range(i + 1):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 1e-300:
+                    return False
+                L[i, i] = math.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    for i in range(n):
+        s = g[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _rigid_normal(p, g, Wi, use, gc, R, c, A, gv):
+    """Cost ``sum (p_i - R (g_i - gc) - c)^T W_i (...)`` of a rigid fit and its Gauss-Newton
+    normal equations ``A`` (6x6), ``gv`` (6,) in ``(dtheta, dc)`` with ``R <- exp(dtheta) R``:
+    the Jacobian of point i is ``[-[u_i x], I]``, ``u_i = R (g_i - gc)``."""
+    for i in range(6):
+        gv[i] = 0.0
+        for j in range(6):
+            A[i, j] = 0.0
+    cost = 0.0
+    K = p.shape[0]
+    u = np.empty(3)
+    y = np.empty(3)
+    WU = np.empty((3, 3))  # W [u x]
+    UT = np.empty((3, 3))
+    for i in range(K):
+        if not use[i]:
+            continue
+        W = Wi[i]
+        for a in range(3):
+            u[a] = (
+                R[a, 0] * (g[i, 0] - gc[0])
+                + R[a, 1] * (g[i, 1] - gc[1])
+                + R[a, 2] * (g[i, 2] - gc[2])
+            )
+        for a in range(3):
+            y[a] = p[i, a] - u[a] - c[a]
+        # [u x] = [[0, -u2, u1], [u2, 0, -u0], [-u1, u0, 0]]
+        for a in range(3):
+            WU[a, 0] = W[a, 1] * u[2] - W[a, 2] * u[1]
+            WU[a, 1] = W[a, 2] * u[0] - W[a, 0] * u[2]
+            WU[a, 2] = W[a, 0] * u[1] - W[a, 1] * u[0]
+        # [u x]^T, row a
+        UT[0, 0], UT[0, 1], UT[0, 2] = 0.0, u[2], -u[1]
+        UT[1, 0], UT[1, 1], UT[1, 2] = -u[2], 0.0, u[0]
+        UT[2, 0], UT[2, 1], UT[2, 2] = u[1], -u[0], 0.0
+        for a in range(3):
+            Wy = W[a, 0] * y[0] + W[a, 1] * y[1] + W[a, 2] * y[2]
+            cost += y[a] * Wy
+            gv[3 + a] += Wy
+            # theta part of J^T W y = -[u x]^T W y = -(W [u x])^T y
+            gv[a] -= WU[0, a] * y[0] + WU[1, a] * y[1] + WU[2, a] * y[2]
+            for b in range(3):
+                A[3 + a, 3 + b] += W[a, b]
+                # A_tt = [u x]^T W [u x];  A_tc = -[u x]^T W = -(W [u x])^T
+                A[a, b] += UT[a, 0] * WU[0, b] + UT[a, 1] * WU[1, b] + UT[a, 2] * WU[2, b]
+                A[a, 3 + b] -= WU[b, a]
+    for a in range(3):
+        for b in range(3):
+            A[3 + b, a] = A[a, 3 + b]
+    return cost
+
+
+@njit(cache=True, error_model="numpy")
+def _gn_rigid(p, g, Wi, use, gc, R0, c0, iters, R, c, A, S):
+    """Gauss-Newton of the rigid fit of :func:`_rigid_normal` from ``R0``, ``c0``; the
+    result in ``R``, ``c`` and its normal matrix in ``A``; returns the cost (inf if the
+    normal matrix is singular). ``S`` is scratch (6, 6) + vectors."""
+    An = S[0]
+    L = S[1]
+    gv = S[2, 0]
+    gn = S[2, 1]
+    d = S[2, 2]
+    cn = S[2, 3, :3]
+    Rn = S[3, :3, :3]
+    E = S[3, 3:, 3:]
+    R[:, :] = R0
+    c[:] = c0
+    cost = _rigid_normal(p, g, Wi, use, gc, R, c, A, gv)
+    if not np.isfinite(cost):
+        return np.inf
+    for _ in range(iters):
+        if not _chol_solve6(A, gv, L, d):
+            return np.inf
+        th = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        if th < 1e-12:
+            break
+        # R_new = exp(d_theta) R (Rodrigues)
+        kx, ky, kz = d[0] / th, d[1] / th, d[2] / th
+        s, ct = math.sin(th), math.cos(th)
+        v = 1.0 - ct
+        E[0, 0] = ct + kx * kx * v
+        E[0, 1] = kx * ky * v - kz * s
+        E[0, 2] = kx * kz * v + ky * s
+        E[1, 0] = ky * kx * v + kz * s
+        E[1, 1] = ct + ky * ky * v
+        E[1, 2] = ky * kz * v - kx * s
+        E[2, 0] = kz * kx * v - ky * s
+        E[2, 1] = kz * ky * v + kx * s
+        E[2, 2] = ct + kz * kz * v
+        for a in range(3):
+            for b in range(3):
+                Rn[a, b] = E[a, 0] * R[0, b] + E[a, 1] * R[1, b] + E[a, 2] * R[2, b]
+            cn[a] = c[a] + d[3 + a]
+        cost_n = _rigid_normal(p, g, Wi, use, gc, Rn, cn, An, gn)
+        if not cost_n <= cost * (1.0 + 1e-12):
+            break
+        cost = cost_n
+        R[:, :] = Rn
+        c[:] = cn
+        A[:, :] = An
+        gv[:] = gn
+        if th < 1e-9:
+            break
+    return cost
+
+
+@njit(cache=True, error_model="numpy")
+def _point_weights(cov_p, cov_g, R, use, Wi):
+    """``W_i = (cov_p_i + R cov_g_i R^T)^-1`` for the used points; a point whose sum is not
+    positive definite is dropped from ``use``. Returns the number of points left."""
+    cnt = 0
+    C = np.empty((3, 3))
+    T = np.empty((3, 3))
+    for i in range(use.shape[0]):
+        if not use[i]:
+            continue
+        for a in range(3):
+            for b in range(3):
+                T[a, b] = (
+                    R[a, 0] * cov_g[i, 0, b] + R[a, 1] * cov_g[i, 1, b] + R[a, 2] * cov_g[i, 2, b]
+                )
+        for a in range(3):
+            for b in range(3):
+                C[a, b] = cov_p[i, a, b] + T[a, 0] * R[b, 0] + T[a, 1] * R[b, 1] + T[a, 2] * R[b, 2]
+        if _inv3_sym(C, Wi[i]):
+            cnt += 1
+        else:
+            use[i] = False
+    return cnt
+
+
+@njit(cache=True, error_model="numpy")
+def _angle_between(R1, R2):
+    tr = 0.0
+    for a in range(3):
+        for b in range(3):
+            tr += R1[a, b] * R2[a, b]
+    return math.acos(min(1.0, max(-1.0, 0.5 * (tr - 1.0))))
+
+
+@njit(cache=True, error_model="numpy")
+def _fit_from(p, g, cov_p, cov_g, use0, gc, Rs, o_m, iters, Wi, use, R, c, A, S, c0):
+    """Gauss-Newton from the start ``Rs`` (translation from ``o_m``) with the weights at
+    the start's rotation; re-weighted at the result and refitted once if it moved by more
+    than 2 deg. Returns the cost (inf if not determined)."""
+    use[:] = use0
+    if _point_weights(cov_p, cov_g, Rs, use, Wi) < 3:
+        return np.inf
+    for a in range(3):
+        c0[a] = o_m[a] + Rs[a, 0] * gc[0] + Rs[a, 1] * gc[1] + Rs[a, 2] * gc[2]
+    cost = _gn_rigid(p, g, Wi, use, gc, Rs, c0, iters, R, c, A, S)
+    if np.isfinite(cost) and _angle_between(R, Rs) > 0.035:
+        use[:] = use0
+        if _point_weights(cov_p, cov_g, R, use, Wi) < 3:
+            return np.inf
+        R1 = R.copy()
+        c1 = c.copy()
+        cost = _gn_rigid(p, g, Wi, use, gc, R1, c1, iters, R, c, A, S)
+    return cost
+
+
+@njit(cache=True, error_model="numpy")
+def refine_rigid(p, g, cov, cov_g, w, R_CG, o, iters, run_len):
+    """Gauss-Newton refinement of rigid alignments ``p_i ~ R_CG g_i + o`` in the metric of
+    each residual's covariance ``cov_i + R_CG cov_g_i R_CG^T`` (the point's and its
+    template coordinates'; ``stereo_points.weighted_kabsch``).
+
+    p, g (M,K,3), cov (M,K,3,3), cov_g (M // run_len, K, 3, 3) (per run), w (M,K) (points
+    with w > 0 are used), R_CG (M,3,3), o (M,3) the isotropically weighted Kabsch fits,
+    ``iters`` Gauss-Newton steps at most (a step that raises the cost stops it). The
+    alignments come in runs of ``run_len`` consecutive epochs (1: independent): the fit
+    starts from the previous epoch's refined attitude where there is one, else from the
+    Kabsch one, and tries the other start when the cost fails the chi-square gate
+    (``3 K - 6`` degrees of freedom, Wilson-Hilferty at z = 4.75, about 1e-6): with
+    metre-level depth errors on a target of a few metres the Kabsch attitude can be tens of
+    degrees off and a few fits from it end in another local minimum. Returns the refined
+    R_CG, o, the covariance of the attitude error ``dtheta`` in C (``R_CG <- exp(dtheta)
+    R_CG``; the rotation block of the inverse normal matrix, so the translation is
+    estimated with it) and a flag per alignment (False: left as given, the covariance NaN;
+    no start passed the gate)."""
+    M, K = w.shape
+    Ro = R_CG.copy()
+    oo = o.copy()
+    covt = np.full((M, 3, 3), np.nan)
+    done = np.zeros(M, dtype=np.bool_)
+    Wi = np.empty((K, 3, 3))
+    use0 = np.empty(K, dtype=np.bool_)
+    use = np.empty(K, dtype=np.bool_)
+    S = np.zeros((4, 6, 6))
+    A = np.empty((6, 6))
+    A2 = np.empty((6, 6))
+    L = np.empty((6, 6))
+    gc = np.empty(3)
+    c0 = np.empty(3)
+    c = np.empty(3)
+    c2 = np.empty(3)
+    R = np.empty((3, 3))
+    R2 = np.empty((3, 3))
+    e6 = np.zeros(6)
+    col = np.empty(6)
+    for m in range(M):
+        cnt = 0
+        for a in range(3):
+            gc[a] = 0.0
+        for i in range(K):
+            ok = w[m, i] > 0
+            for a in range(3):
+                ok = ok and np.isfinite(p[m, i, a]) and np.isfinite(g[m, i, a])
+            use0[i] = ok
+            if ok:
+                cnt += 1
+                for a in range(3):
+                    gc[a] += g[m, i, a]
+        if cnt < 3:
+            continue
+        for a in range(3):
+            gc[a] /= cnt
+        dof = 3.0 * cnt - 6.0
+        gate = 20.0
+        if dof > 0:
+            f = 2.0 / (9.0 * dof)
+            gate = max(dof * (1.0 - f + 4.75 * math.sqrt(f)) ** 3, 20.0)
+        r = m // run_len
+        warm = run_len > 1 and m % run_len != 0 and done[m - 1]
+        Rs = Ro[m - 1] if warm else R_CG[m]
+        cost = _fit_from(
+            p[m], g[m], cov[m], cov_g[r], use0, gc, Rs, o[m], iters, Wi, use, R, c, A, S, c0
+        )
+        if not cost <= gate and warm:
+            cost2 = _fit_from(
+                p[m],
+                g[m],
+                cov[m],
+                cov_g[r],
+                use0,
+                gc,
+                R_CG[m],
+                o[m],
+                iters,
+                Wi,
+                use,
+                R2,
+                c2,
+                A2,
+                S,
+                c0,
+            )
+            if cost2 < cost:
+                cost = cost2
+                R[:, :] = R2
+                c[:] = c2
+                A[:, :] = A2
+        if not cost <= gate:
+            continue
+        # rotation block of A^{-1}: solve A x = e_j for j = 0..2
+        ok = True
+        for j in range(3):
+            for i in range(6):
+                e6[i] = 1.0 if i == j else 0.0
+            if not _chol_solve6(A, e6, L, col):
+                ok = False
+                break
+            for i in range(3):
+                covt[m, i, j] = col[i]
+        if not ok:
+            covt[m] = np.nan
+            continue
+        Ro[m] = R
+        for a in range(3):
+            oo[m, a] = c[a] - (R[a, 0] * gc[0] + R[a, 1] * gc[1] + R[a, 2] * gc[2])
+        done[m] = True
+    return Ro, oo, covt, done

@@ -50,6 +50,7 @@ class FrontEndSettings:
     min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
     max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
     ls_every: int = 5  # epochs between least-squares solutions
+    g_fit: str = "full"  # G attitude: "full" (points' covariances) or "kabsch" (isotropic)
 
 
 @dataclass
@@ -72,6 +73,7 @@ class PointsFrontEnd:
     cov_frame: Array  # (B,n,3,3) the slowly varying part: error of the DPACF frame T in G
     cov_ratios: Array  # (B,n,3,3) covariance of the inertia ratios p (Hu 2024 eq. 19)
     skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
+    cov_omega: Array | None = None  # (B,n,3,3) rad^2/s^2, full covariance of omega_G
 
 
 def triangulate(meas_list) -> tuple[Array, Array, NDArray[np.bool_], dict[str, Array]]:
@@ -129,13 +131,32 @@ def _finish_triangulation(p: Array, cov: Array, obs: NDArray[np.bool_]):
 
 
 def weighted_kabsch(
-    p_C: Array, g_G: Array, w: Array
+    p_C: Array,
+    g_G: Array,
+    w: Array,
+    cov_C: Array | None = None,
+    cov_g: Array | None = None,
+    run_len: int = 1,
 ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
     """Rigid alignment ``p_C ~ R_CG g_G + o_C`` (weighted least squares), batched.
 
     p_C, g_G : (B,K,3); w : (B,K) weights (0 = not used). Returns R_GC (B,3,3), o_C (B,3),
-    the information-form covariance of the G attitude error (in G, rad^2), and a validity
-    mask (>= 3 non-collinear points).
+    the covariance of the G attitude error (in G, rad^2), and a validity mask (>= 3
+    non-collinear points).
+
+    Without ``cov_C`` the fit is the isotropically weighted Kabsch solution and its
+    covariance the information form ``(sum w (|a|^2 I - a a^T))^-1`` (points of variance
+    ``1/w`` per axis). With the points' covariances ``cov_C`` (B,K,3,3), and optionally the
+    template's ``cov_g`` (B // run_len, K, 3, 3; in G), that fit is refined by Gauss-Newton
+    in the metric of the residuals' covariance (``_points_kernel.refine_rigid``;
+    ``run_len``: the alignments are runs of that many consecutive epochs, each started from
+    the previous one's result) and the covariance is the fit's. Why (beyond the paper, whose eq. 6-7
+    build G from three points): a stereo point's error is an ellipsoid along its line of
+    sight, ``range^2 sigma / b`` deep and ``range sigma`` wide; the isotropic fit lets the
+    depth error tilt the frame (tens of degrees at 190 m with b = 1 m, sigma = 2e-5 rad),
+    while the lateral positions of points spread in depth fix the tilt to a fraction of a
+    degree, as in a perspective pose fit. Alignments whose refined cost fails its
+    chi-square gate keep the Kabsch fit and covariance.
     """
     # sums over the points in a compiled loop (the numpy version of these few lines made
     # full-size temporaries of every (run, epoch, feature) vector; same formulas below)
@@ -152,11 +173,30 @@ def weighted_kabsch(
     o = pc - np.einsum("bij,bj->bi", R_CG, gc)
     # info: information of a small rotation of the lever arms a_i (C frame),
     # sum w [a x]^T [a x] with [a x]^T [a x] = |a|^2 I - a a^T
-    R_GC = np.swapaxes(R_CG, -1, -2)
     eye = np.eye(3)
     info = np.where(ok[:, None, None], info, eye)
-    cov_C = np.linalg.inv(info + 1e-12 * eye)
-    cov_G = R_GC @ cov_C @ np.swapaxes(R_GC, -1, -2)
+    cov_t = np.linalg.inv(info + 1e-12 * eye)
+    if cov_C is not None:
+        R_r, o_r, cov_r, done = _points_kernel.refine_rigid(
+            np.ascontiguousarray(p_C, dtype=float),
+            np.ascontiguousarray(g_G, dtype=float),
+            np.ascontiguousarray(cov_C, dtype=float),
+            np.ascontiguousarray(
+                np.zeros((len(w) // run_len,) + w.shape[1:] + (3, 3)) if cov_g is None else cov_g,
+                dtype=float,
+            ),
+            np.ascontiguousarray(np.where(ok[:, None], w, 0.0)),
+            np.ascontiguousarray(R_CG),
+            np.ascontiguousarray(o),
+            4,
+            run_len,
+        )
+        done &= ok
+        R_CG = np.where(done[:, None, None], R_r, R_CG)
+        o = np.where(done[:, None], o_r, o)
+        cov_t = np.where(done[:, None, None], cov_r, cov_t)
+    R_GC = np.swapaxes(R_CG, -1, -2)
+    cov_G = R_GC @ cov_t @ np.swapaxes(R_GC, -1, -2)
     return R_GC, o, cov_G, ok
 
 
@@ -180,12 +220,15 @@ def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDA
 
 
 def photogrammetric_frames(
-    p_C: Array, cov_C: Array, usable: NDArray[np.bool_]
+    p_C: Array, cov_C: Array, usable: NDArray[np.bool_], full_cov: bool = True
 ) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_]]:
     """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3), its final mask and
     the mask of features catalogued by each epoch (B,n,N)."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
+    # covariance of the template coordinates (in G): the point's at its first sighting,
+    # plus what that epoch's G attitude error does to it (for features catalogued later)
+    cov_tmpl = np.zeros((B, N, 3, 3))
     known = np.zeros((B, N), dtype=bool)
     has_G = np.zeros(B, dtype=bool)
     w_all = np.where(usable, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
@@ -205,17 +248,34 @@ def photogrammetric_frames(
                 Rg = g_frame_from_points(m[0], m[1], m[2])
                 g = (pk - m[0][:, None]) @ np.swapaxes(Rg, -1, -2)
                 template[runs] = np.where(u[runs][..., None], g, np.nan)
+                Rg3 = Rg[:, None]
+                cg_ = Rg3 @ np.nan_to_num(cov_C[runs, k]) @ np.swapaxes(Rg3, -1, -2)
+                cov_tmpl[runs] = np.where(u[runs][..., None, None], cg_, 0.0)
                 known[runs] = u[runs]
                 has_G[runs] = True
         fresh_runs = has_G & np.any(u & ~known, axis=1) & ((u & known).sum(axis=1) >= 3)
         if fresh_runs.any():
             r_ = np.flatnonzero(fresh_runs)
             w = np.where(u[r_] & known[r_], w_all[r_, k], 0.0)
-            Rgc, o, _, ok = weighted_kabsch(p_C[r_, k], template[r_], w)
-            r_, Rgc, o = r_[ok], Rgc[ok], o[ok]
+            Rgc, o, cgk, ok = weighted_kabsch(
+                p_C[r_, k],
+                template[r_],
+                w,
+                cov_C[r_, k] if full_cov else None,
+                cov_tmpl[r_] if full_cov else None,
+            )
+            r_, Rgc, o, cgk = r_[ok], Rgc[ok], o[ok], cgk[ok]
             fresh = u[r_] & ~known[r_]
             g = (p_C[r_, k] - o[:, None]) @ np.swapaxes(Rgc, -1, -2)
             template[r_] = np.where(fresh[..., None], g, template[r_])
+            Rg3 = Rgc[:, None]
+            lever = _skew(
+                g - np.nanmean(np.where(known[r_][..., None], template[r_], np.nan), 1)[:, None]
+            )
+            cg_ = Rg3 @ np.nan_to_num(cov_C[r_, k]) @ np.swapaxes(Rg3, -1, -2) + lever @ cgk[
+                :, None
+            ] @ np.swapaxes(lever, -1, -2)
+            cov_tmpl[r_] = np.where(fresh[..., None, None], np.nan_to_num(cg_), cov_tmpl[r_])
             known[r_] |= fresh
         known_at[:, k] = known
     # Pass 2 (vectorised over runs and epochs): G at every epoch from the visible features
@@ -223,7 +283,14 @@ def photogrammetric_frames(
     use = usable & known_at
     w = np.where(use, w_all, 0.0).reshape(B * n, N)
     tmpl = np.broadcast_to(template[:, None], (B, n, N, 3)).reshape(B * n, N, 3)
-    Rgc, _, cg, ok = weighted_kabsch(p_C.reshape(B * n, N, 3), tmpl, w)
+    Rgc, _, cg, ok = weighted_kabsch(
+        p_C.reshape(B * n, N, 3),
+        tmpl,
+        w,
+        cov_C.reshape(B * n, N, 3, 3) if full_cov else None,
+        cov_tmpl,
+        run_len=n,
+    )
     ok = ok.reshape(B, n)
     R_GC = np.where(ok[..., None, None], Rgc.reshape(B, n, 3, 3), np.nan)
     cov_G = np.where(ok[..., None, None], cg.reshape(B, n, 3, 3), np.nan)
@@ -231,20 +298,81 @@ def photogrammetric_frames(
 
 
 def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, Array]:
-    """Rate of G w.r.t. I in G, by a least-squares linear fit of the rotation vectors
-    ``log(R_GI(k+j) R_GI(k)^T) = -j dt omega`` over ``j = -h..h`` (Hu 2024 eq. 15-16 uses a
-    numerical derivative; the symmetric fit cancels the second-order term and averages the
-    attitude noise). Returns omega (B,n,3) and its per-axis variance (B,n)."""
+    """Rate of G w.r.t. I in G and its per-axis variance (B,n): :func:`rates_and_covariance`
+    with the covariance's trace / 3."""
+    omega, cov = rates_and_covariance(R_GI, cov_G, dt, h)
+    return omega, np.trace(cov, axis1=-2, axis2=-1) / 3.0
+
+
+def _fit_factors(h: int) -> tuple[float, float, float]:
+    """For the slope fits over ``j = -h..h``: the variance factors ``sum_j c_j^2`` of the
+    linear and the linear-plus-cubic fit (the slope's variance is that times
+    ``sigma_psi^2 / dt^2``) and the (-dimensionless) bias of the linear fit per unit cubic
+    coefficient, ``sum_j c_j j^3``."""
+    j = np.arange(-h, h + 1, dtype=float)
+    cl = j / np.sum(j * j)
+    cc = np.linalg.pinv(np.stack([j, j**3], 1))[0]
+    return float(np.sum(cl**2)), float(np.sum(cc**2)), float(np.sum(cl * j**3))
+
+
+def rates_and_covariance(
+    R_GI: Array, cov_G: Array, dt: float, h: int, bias_epochs: int = 20
+) -> tuple[Array, Array]:
+    """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
+
+    Hu 2024 eq. 15-16 take a numerical derivative. Here the rotation vectors
+    ``phi_j = log(R_GI(k+j) R_GI(k)^T) = -omega j dt + O(j^3)`` over ``j = -h..h`` are fitted
+    by least squares, symmetric so that the second-order term cancels, with two models:
+
+    * a line: variance ``sigma^2 / (dt^2 sum_j j^2)`` for attitudes of covariance
+      ``sigma^2`` (the errors of the ``2h`` attitudes enter once each; the centre's cancels),
+      but biased by the third-order term, ``omega'' h^2 dt^2 / 10`` in order of magnitude:
+      about 5e-4 rad/s for this tumble at h = 10;
+    * a line plus a cubic term: no third-order bias, 2.5 times the standard deviation.
+
+    Beyond the paper: the symmetric fits' difference ``d = omega_line - omega_cubic``
+    estimates the line's bias (its covariance is the difference of the two variances, the
+    fits being nested); its square, less that variance, averaged over the last
+    ``bias_epochs`` epochs, is the bias's mean square. Each epoch uses the fit with the
+    smaller expected mean square error: the cubic one where the attitudes are precise (near
+    range, where the bias dominates by a factor 10), the line where they are noisy, with the
+    bias's mean square added to its covariance. ``cov_G`` is taken as constant over the
+    window. NaN unless all ``2h + 1`` epochs have a G attitude."""
     q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
-    # omega = -sum_j j phi_j / (dt sum_j j^2), phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h,
-    # NaN unless all 2h+1 epochs have a G attitude (compiled loop)
-    omega = _points_kernel.rate_fit(q, valid, h, dt)
-    good = np.all(np.isfinite(omega), axis=-1)
-    sjj = 2.0 * sum(j * j for j in range(1, h + 1))
-    var_psi = np.trace(np.nan_to_num(cov_G), axis1=-2, axis2=-1) / 3.0
-    var = 2.0 * var_psi / (dt**2 * sjj)
-    return omega, np.where(good, var, np.nan)
+    # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
+    om_l, om_c = _points_kernel.rate_fit(q, valid, h, dt)
+    good = np.all(np.isfinite(om_l), axis=-1) & np.all(np.isfinite(cov_G), axis=(-1, -2))
+    fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
+    C = np.where(good[..., None, None], cov_G, 0.0) / dt**2
+    var_diff = (fc - fl) * np.diagonal(C, axis1=-2, axis2=-1)  # (B,n,3)
+    d2 = np.where(good[..., None], np.nan_to_num((om_l - om_c) ** 2 - var_diff), 0.0)
+    # trailing mean over the last `bias_epochs` epochs with a rate (causal)
+    cs = np.cumsum(np.concatenate([np.zeros_like(d2[:, :1]), d2], 1), axis=1)
+    cn = np.cumsum(np.concatenate([np.zeros_like(good[:, :1], int), good], 1), axis=1)
+    n = d2.shape[1]
+    lo = np.maximum(np.arange(n) + 1 - bias_epochs, 0)
+    hi = np.arange(n) + 1
+    cnt = np.maximum(cn[:, hi] - cn[:, lo], 1)
+    b2 = np.maximum((cs[:, hi] - cs[:, lo]) / cnt[..., None], 0.0)
+    cubic = (np.sum(b2, -1) > (fc - fl) * np.trace(C, axis1=-2, axis2=-1)) & np.all(
+        np.isfinite(om_c), -1
+    )
+    omega = np.where(cubic[..., None], om_c, om_l)
+    eye = np.eye(3)
+    with np.errstate(invalid="ignore"):  # fc = inf for h = 1, where the cubic fit is not used
+        cov = np.where(cubic[..., None, None], fc * C, fl * C + b2[..., None] * eye)
+    omega = np.where(good[..., None], omega, np.nan)
+    cov = np.where(good[..., None, None], cov, np.nan)
+    return omega, cov
+
+
+def _skew(v: Array) -> Array:
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
 
 
 def _quats(R: Array) -> Array:
@@ -287,14 +415,32 @@ def identify_and_dpacf(
     cov_G: Array,
     s: FrontEndSettings,
     delay: int = 0,
+    cov_w: Array | None = None,
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
-    covariance of the inertia ratios (eq. 19)."""
+    covariance of the inertia ratios (eq. 19). With the rates' full covariances ``cov_w``
+    (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
+    ``1 / var_w``."""
     B, n = omega_G.shape[:2]
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
     a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
-    w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
+    if cov_w is None:
+        w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
+    else:
+        # Generalised least squares (beyond the paper's eq. 13): each epoch's three rows are
+        # whitened by the covariance of their residual a X - b = I_bar d_omega + [R H x] d_psi,
+        # taken at I_bar = 1 (the moments differ by less than a factor 2, the rate error's
+        # axes by orders of magnitude): C = cov_w + [w x] cov_G [w x]^T, with R H = I_bar w.
+        # The rate at k does not use the attitude at k, so the two terms are independent.
+        wx = _skew(np.nan_to_num(omega_G))
+        C = np.nan_to_num(cov_w) + wx @ np.nan_to_num(cov_G) @ np.swapaxes(wx, -1, -2)
+        C = np.where(ok[..., None, None], C, np.eye(3))
+        C = C + 1e-12 * np.trace(C, axis1=-2, axis2=-1)[..., None, None] * np.eye(3)
+        Lc = np.linalg.cholesky(C)
+        a = np.linalg.solve(Lc, a)
+        b = np.linalg.solve(Lc, b[..., None])[..., 0]
+        w = ok.astype(float)
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
     held = (np.arange(n) // s.ls_every) * s.ls_every
@@ -406,12 +552,21 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         p_C, cov_C, usable, skipped = triangulate(meas_list)
         p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
         cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
-    R_GC, cov_G, template, known, known_at = photogrammetric_frames(p_C, cov_C, usable)
+    R_GC, cov_G, template, known, known_at = photogrammetric_frames(
+        p_C, cov_C, usable, full_cov=s.g_fit == "full"
+    )
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
-    omega_G, var_w = rates_from_G(R_GI, cov_G, dt, s.rate_half_window)
+    omega_G, cov_w = rates_and_covariance(R_GI, cov_G, dt, s.rate_half_window)
+    var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
-        omega_G, var_w, R_GI, cov_G, s, delay=s.rate_half_window
+        omega_G,
+        var_w,
+        R_GI,
+        cov_G,
+        s,
+        delay=s.rate_half_window,
+        cov_w=cov_w if s.g_fit == "full" else None,
     )
     return PointsFrontEnd(
         t=t,
@@ -432,4 +587,5 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_frame=cov_frame,
         cov_ratios=cov_ratios,
         skipped=skipped,
+        cov_omega=cov_w,
     )
