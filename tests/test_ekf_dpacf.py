@@ -545,8 +545,8 @@ def test_frame_measurement_and_its_jacobian():
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 0, 1 and 3 of these seeds
-        (False, {"constraint_curvature": True}, 1e-6, 200.0, [0, 1, 3, 2], "diverge"),
+        # ekf-baseline with the curvature term diverges in runs 0, 2 and 3 of these seeds
+        (False, {"constraint_curvature": True}, 1e-6, 200.0, [0, 2, 3, 7], "diverge"),
         # at 5e-5 rad, asking for a DPACF frame within 0.005 rad, run 6 starts at 57.5 s and
         # run 0 never does (with the default 0.05 rad every run starts by 22.5 s)
         (True, {"max_dpacf_sigma_rad": 0.005}, 5e-5, 100.0, [6, 0], "never"),

@@ -82,6 +82,52 @@ def triangulate_parallel_rotated(uv, obs, focal, baseline, cu, cv, sigma, R_LC):
 
 
 @njit(cache=True, error_model="numpy")
+def _moments_one(p, g, w, H, pc, gc, info):
+    """:func:`kabsch_moments` of one alignment: p, g (K,3), w (K,); fills H, info (3,3),
+    pc, gc (3,) and returns the count of points with w > 0 and the weight sum."""
+    K = w.shape[0]
+    cnt = 0
+    sw = 0.0
+    for a in range(3):
+        pc[a] = 0.0
+        gc[a] = 0.0
+        for c in range(3):
+            H[a, c] = 0.0
+            info[a, c] = 0.0
+    for i in range(K):
+        wi = w[i]
+        if wi > 0:
+            cnt += 1
+        sw += wi
+        if wi != 0.0:
+            for a in range(3):
+                pc[a] += wi * p[i, a]
+                gc[a] += wi * g[i, a]
+    s = sw if sw > 0 else 1.0
+    for a in range(3):
+        pc[a] /= s
+        gc[a] /= s
+    for i in range(K):
+        wi = w[i]
+        if not wi > 0:
+            continue
+        a0 = p[i, 0] - pc[0]
+        a1 = p[i, 1] - pc[1]
+        a2 = p[i, 2] - pc[2]
+        aa = a0 * a0 + a1 * a1 + a2 * a2
+        av = (a0, a1, a2)
+        for r in range(3):
+            gr = wi * (g[i, r] - gc[r])
+            H[r, 0] += gr * a0
+            H[r, 1] += gr * a1
+            H[r, 2] += gr * a2
+        for r in range(3):
+            for c in range(3):
+                info[r, c] += wi * ((aa if r == c else 0.0) - av[r] * av[c])
+    return cnt, sw
+
+
+@njit(cache=True, error_model="numpy")
 def kabsch_moments(p, g, w):
     """The weighted, centred cross-covariance ``H = sum w g p^T`` of a rigid alignment
     ``p ~ R g + o``, the weighted centroids and the lever-arm information
@@ -97,36 +143,7 @@ def kabsch_moments(p, g, w):
     cnt = np.zeros(M, dtype=np.int64)
     sw = np.zeros(M)
     for m in range(M):
-        for i in range(K):
-            wi = w[m, i]
-            if wi > 0:
-                cnt[m] += 1
-            sw[m] += wi
-            if wi != 0.0:
-                for a in range(3):
-                    pc[m, a] += wi * p[m, i, a]
-                    gc[m, a] += wi * g[m, i, a]
-        s = sw[m] if sw[m] > 0 else 1.0
-        for a in range(3):
-            pc[m, a] /= s
-            gc[m, a] /= s
-        for i in range(K):
-            wi = w[m, i]
-            if not wi > 0:
-                continue
-            a0 = p[m, i, 0] - pc[m, 0]
-            a1 = p[m, i, 1] - pc[m, 1]
-            a2 = p[m, i, 2] - pc[m, 2]
-            aa = a0 * a0 + a1 * a1 + a2 * a2
-            av = (a0, a1, a2)
-            for r in range(3):
-                gr = wi * (g[m, i, r] - gc[m, r])
-                H[m, r, 0] += gr * a0
-                H[m, r, 1] += gr * a1
-                H[m, r, 2] += gr * a2
-            for r in range(3):
-                for c in range(3):
-                    info[m, r, c] += wi * ((aa if r == c else 0.0) - av[r] * av[c])
+        cnt[m], sw[m] = _moments_one(p[m], g[m], w[m], H[m], pc[m], gc[m], info[m])
     return H, pc, gc, info, cnt, sw
 
 
@@ -332,6 +349,55 @@ def _jacobi_eig(A, V):
 
 
 @njit(cache=True, error_model="numpy")
+def _horn_one(S, R, N4, V4, sv):
+    """:func:`kabsch_rotation` of one ``H`` (3x3): fills ``R`` and returns the singular
+    value ratio (``N4``, ``V4`` (4,4) and ``sv`` (3,) are scratch)."""
+    sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
+    syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
+    szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
+    N4[0, 0] = sxx + syy + szz
+    N4[0, 1] = N4[1, 0] = syz - szy
+    N4[0, 2] = N4[2, 0] = szx - sxz
+    N4[0, 3] = N4[3, 0] = sxy - syx
+    N4[1, 1] = sxx - syy - szz
+    N4[1, 2] = N4[2, 1] = sxy + syx
+    N4[1, 3] = N4[3, 1] = szx + sxz
+    N4[2, 2] = -sxx + syy - szz
+    N4[2, 3] = N4[3, 2] = syz + szy
+    N4[3, 3] = -sxx - syy + szz
+    _jacobi_eig(N4, V4)
+    best = 0
+    for i in range(1, 4):
+        if N4[i, i] > N4[best, best]:
+            best = i
+    w, x, y, z = V4[0, best], V4[1, best], V4[2, best], V4[3, best]
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not n > 0:
+        w, x, y, z, n = 1.0, 0.0, 0.0, 0.0, 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    R[0, 0] = w * w + x * x - y * y - z * z
+    R[0, 1] = 2 * (x * y - w * z)
+    R[0, 2] = 2 * (x * z + w * y)
+    R[1, 0] = 2 * (x * y + w * z)
+    R[1, 1] = w * w - x * x + y * y - z * z
+    R[1, 2] = 2 * (y * z - w * x)
+    R[2, 0] = 2 * (x * z - w * y)
+    R[2, 1] = 2 * (y * z + w * x)
+    R[2, 2] = w * w - x * x - y * y + z * z
+    # singular values of H from Horn's eigenvalues: with l_max the largest, the other
+    # three give (l_max + l_i) / 2 = sigma_1, sigma_2 and +-sigma_3 in some order
+    c = 0
+    for i in range(4):
+        if i != best:
+            sv[c] = abs(0.5 * (N4[best, best] + N4[i, i]))
+            c += 1
+    hi = max(sv[0], sv[1], sv[2])
+    lo = min(sv[0], sv[1], sv[2])
+    mid = sv[0] + sv[1] + sv[2] - hi - lo
+    return mid / hi if hi > 0 else 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def kabsch_rotation(H):
     """The proper rotation ``R`` minimising ``sum w |a - R b|^2`` for ``H = sum w b a^T``
     (M,3,3; ``kabsch_moments``' H with b = g, a = p), by Horn's quaternion method (the
@@ -344,52 +410,9 @@ def kabsch_rotation(H):
     ratio = np.empty(M)
     N4 = np.empty((4, 4))
     V4 = np.empty((4, 4))
+    sv = np.empty(3)
     for m in range(M):
-        S = H[m]
-        sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
-        syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
-        szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
-        N4[0, 0] = sxx + syy + szz
-        N4[0, 1] = N4[1, 0] = syz - szy
-        N4[0, 2] = N4[2, 0] = szx - sxz
-        N4[0, 3] = N4[3, 0] = sxy - syx
-        N4[1, 1] = sxx - syy - szz
-        N4[1, 2] = N4[2, 1] = sxy + syx
-        N4[1, 3] = N4[3, 1] = szx + sxz
-        N4[2, 2] = -sxx + syy - szz
-        N4[2, 3] = N4[3, 2] = syz + szy
-        N4[3, 3] = -sxx - syy + szz
-        _jacobi_eig(N4, V4)
-        best = 0
-        for i in range(1, 4):
-            if N4[i, i] > N4[best, best]:
-                best = i
-        w, x, y, z = V4[0, best], V4[1, best], V4[2, best], V4[3, best]
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        if not n > 0:
-            w, x, y, z, n = 1.0, 0.0, 0.0, 0.0, 1.0
-        w, x, y, z = w / n, x / n, y / n, z / n
-        R[m, 0, 0] = w * w + x * x - y * y - z * z
-        R[m, 0, 1] = 2 * (x * y - w * z)
-        R[m, 0, 2] = 2 * (x * z + w * y)
-        R[m, 1, 0] = 2 * (x * y + w * z)
-        R[m, 1, 1] = w * w - x * x + y * y - z * z
-        R[m, 1, 2] = 2 * (y * z - w * x)
-        R[m, 2, 0] = 2 * (x * z - w * y)
-        R[m, 2, 1] = 2 * (y * z + w * x)
-        R[m, 2, 2] = w * w - x * x - y * y + z * z
-        # singular values of H from Horn's eigenvalues: with l_max the largest, the other
-        # three give (l_max + l_i) / 2 = sigma_1, sigma_2 and +-sigma_3 in some order
-        sv = np.empty(3)
-        c = 0
-        for i in range(4):
-            if i != best:
-                sv[c] = abs(0.5 * (N4[best, best] + N4[i, i]))
-                c += 1
-        hi = max(sv[0], sv[1], sv[2])
-        lo = min(sv[0], sv[1], sv[2])
-        mid = sv[0] + sv[1] + sv[2] - hi - lo
-        ratio[m] = mid / hi if hi > 0 else 0.0
+        ratio[m] = _horn_one(H[m], R[m], N4, V4, sv)
     return R, ratio
 
 
@@ -414,11 +437,10 @@ def _inv3_sym(C, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _chol_solve6(A, g, L, x):
-    """Solve the symmetric positive definite 6x6 ``A x = g`` by Cholesky (``L`` scratch);
-    False if ``A`` is not numerically positive definite."""
-    n = 6
-    for i in range(n):
+def _chol6(A, L):
+    """Cholesky factor ``L`` of the symmetric 6x6 ``A``; False if not numerically positive
+    definite."""
+    for i in range(6):
         for j in range(i + 1):
             s = A[i, j]
             for k in range(j):
@@ -429,17 +451,22 @@ def _chol_solve6(A, g, L, x):
                 L[i, i] = math.sqrt(s)
             else:
                 L[i, j] = s / L[j, j]
-    for i in range(n):
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _chol_back6(L, g, x):
+    """Solve ``L L^T x = g`` given the Cholesky factor ``L`` (6x6)."""
+    for i in range(6):
         s = g[i]
         for k in range(i):
             s -= L[i, k] * x[k]
         x[i] = s / L[i, i]
-    for i in range(n - 1, -1, -1):
+    for i in range(5, -1, -1):
         s = x[i]
-        for k in range(i + 1, n):
+        for k in range(i + 1, 6):
             s -= L[k, i] * x[k]
         x[i] = s / L[i, i]
-    return True
 
 
 @njit(cache=True, error_model="numpy")
@@ -514,8 +541,9 @@ def _gn_rigid(p, g, Wi, use, gc, R0, c0, iters, R, c, A, S):
     if not np.isfinite(cost):
         return np.inf
     for _ in range(iters):
-        if not _chol_solve6(A, gv, L, d):
+        if not _chol6(A, L):
             return np.inf
+        _chol_back6(L, gv, d)
         th = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if th < 1e-12:
             break
@@ -536,6 +564,10 @@ def _gn_rigid(p, g, Wi, use, gc, R0, c0, iters, R, c, A, S):
             for b in range(3):
                 Rn[a, b] = E[a, 0] * R[0, b] + E[a, 1] * R[1, b] + E[a, 2] * R[2, b]
             cn[a] = c[a] + d[3 + a]
+        if th < 1e-7:  # converged (far below any attitude noise): take it, keep A
+            R[:, :] = Rn
+            c[:] = cn
+            break
         cost_n = _rigid_normal(p, g, Wi, use, gc, Rn, cn, An, gn)
         if not cost_n <= cost * (1.0 + 1e-12):
             break
@@ -544,8 +576,6 @@ def _gn_rigid(p, g, Wi, use, gc, R0, c0, iters, R, c, A, S):
         c[:] = cn
         A[:, :] = An
         gv[:] = gn
-        if th < 1e-9:
-            break
     return cost
 
 
@@ -584,15 +614,13 @@ def _angle_between(R1, R2):
 
 
 @njit(cache=True, error_model="numpy")
-def _fit_from(p, g, cov_p, cov_g, use0, gc, Rs, o_m, iters, Wi, use, R, c, A, S, c0):
-    """Gauss-Newton from the start ``Rs`` (translation from ``o_m``) with the weights at
-    the start's rotation; re-weighted at the result and refitted once if it moved by more
-    than 2 deg. Returns the cost (inf if not determined)."""
+def _fit_from(p, g, cov_p, cov_g, use0, gc, Rs, c0, iters, Wi, use, R, c, A, S):
+    """Gauss-Newton from the start ``Rs``, ``c0`` (the position of the template point
+    ``gc``) with the weights at the start's rotation; re-weighted at the result and refitted
+    once if it moved by more than 2 deg. Returns the cost (inf if not determined)."""
     use[:] = use0
     if _point_weights(cov_p, cov_g, Rs, use, Wi) < 3:
         return np.inf
-    for a in range(3):
-        c0[a] = o_m[a] + Rs[a, 0] * gc[0] + Rs[a, 1] * gc[1] + Rs[a, 2] * gc[2]
     cost = _gn_rigid(p, g, Wi, use, gc, Rs, c0, iters, R, c, A, S)
     if np.isfinite(cost) and _angle_between(R, Rs) > 0.035:
         use[:] = use0
@@ -605,28 +633,30 @@ def _fit_from(p, g, cov_p, cov_g, use0, gc, Rs, o_m, iters, Wi, use, R, c, A, S,
 
 
 @njit(cache=True, error_model="numpy")
-def refine_rigid(p, g, cov, cov_g, w, R_CG, o, iters, run_len):
-    """Gauss-Newton refinement of rigid alignments ``p_i ~ R_CG g_i + o`` in the metric of
-    each residual's covariance ``cov_i + R_CG cov_g_i R_CG^T`` (the point's and its
-    template coordinates'; ``stereo_points.weighted_kabsch``).
+def align_rigid(p, g, cov, cov_g, w, iters, run_len):
+    """Rigid alignments ``p_i ~ R_CG g_i + o`` by Gauss-Newton in the metric of each
+    residual's covariance ``cov_i + R_CG cov_g_i R_CG^T`` (the point's and its template
+    coordinates'; ``stereo_points.weighted_kabsch`` with covariances).
 
     p, g (M,K,3), cov (M,K,3,3), cov_g (M // run_len, K, 3, 3) (per run), w (M,K) (points
-    with w > 0 are used), R_CG (M,3,3), o (M,3) the isotropically weighted Kabsch fits,
-    ``iters`` Gauss-Newton steps at most (a step that raises the cost stops it). The
-    alignments come in runs of ``run_len`` consecutive epochs (1: independent): the fit
-    starts from the previous epoch's refined attitude where there is one, else from the
-    Kabsch one, and tries the other start when the cost fails the chi-square gate
-    (``3 K - 6`` degrees of freedom, Wilson-Hilferty at z = 4.75, about 1e-6): with
-    metre-level depth errors on a target of a few metres the Kabsch attitude can be tens of
-    degrees off and a few fits from it end in another local minimum. Returns the refined
-    R_CG, o, the covariance of the attitude error ``dtheta`` in C (``R_CG <- exp(dtheta)
-    R_CG``; the rotation block of the inverse normal matrix, so the translation is
-    estimated with it) and a flag per alignment (False: left as given, the covariance NaN;
-    no start passed the gate)."""
+    with w > 0 are used; the weights of the Kabsch start), ``iters`` Gauss-Newton steps at
+    most (a step that raises the cost stops it). The alignments come in runs of ``run_len``
+    consecutive epochs (1: independent): the fit starts from the previous epoch's attitude
+    where there is one, else from the isotropically weighted Kabsch fit (Horn's method),
+    which is also tried when the warm start's cost fails the chi-square gate (``3 K - 6``
+    degrees of freedom, Wilson-Hilferty at z = 4.75, about 1e-6): with metre-level depth
+    errors on a target of a few metres the Kabsch attitude can be tens of degrees off and a
+    few fits from it end in another local minimum. Returns R_CG (M,3,3), o (M,3), the
+    covariance of the attitude error ``dtheta`` in C (``R_CG <- exp(dtheta) R_CG``; the
+    rotation block of the inverse normal matrix, so the translation is estimated with it),
+    ``ok`` (M,) (at least three non-collinear points) and ``refined`` (M,): where no fit
+    passed the gate the Kabsch fit is returned with its information-form covariance
+    ``(sum w (|a|^2 I - a a^T))^-1``."""
     M, K = w.shape
-    Ro = R_CG.copy()
-    oo = o.copy()
+    Ro = np.full((M, 3, 3), np.nan)
+    oo = np.full((M, 3), np.nan)
     covt = np.full((M, 3, 3), np.nan)
+    ok_out = np.zeros(M, dtype=np.bool_)
     done = np.zeros(M, dtype=np.bool_)
     Wi = np.empty((K, 3, 3))
     use0 = np.empty(K, dtype=np.bool_)
@@ -641,77 +671,154 @@ def refine_rigid(p, g, cov, cov_g, w, R_CG, o, iters, run_len):
     c2 = np.empty(3)
     R = np.empty((3, 3))
     R2 = np.empty((3, 3))
+    Rk = np.empty((3, 3))
+    ok_ = np.empty(3)
     e6 = np.zeros(6)
     col = np.empty(6)
+    H = np.empty((3, 3))
+    info = np.empty((3, 3))
+    pcw = np.empty(3)
+    gcw = np.empty(3)
+    N4 = np.empty((4, 4))
+    V4 = np.empty((4, 4))
+    sv = np.empty(3)
     for m in range(M):
         cnt = 0
         for a in range(3):
             gc[a] = 0.0
+            ok_[a] = 0.0
         for i in range(K):
-            ok = w[m, i] > 0
+            good = w[m, i] > 0
             for a in range(3):
-                ok = ok and np.isfinite(p[m, i, a]) and np.isfinite(g[m, i, a])
-            use0[i] = ok
-            if ok:
+                good = good and np.isfinite(p[m, i, a]) and np.isfinite(g[m, i, a])
+            use0[i] = good
+            if good:
                 cnt += 1
                 for a in range(3):
                     gc[a] += g[m, i, a]
+                    ok_[a] += p[m, i, a]
         if cnt < 3:
             continue
         for a in range(3):
             gc[a] /= cnt
+            ok_[a] /= cnt  # centroid of the points: the warm start's translation
         dof = 3.0 * cnt - 6.0
-        gate = 20.0
-        if dof > 0:
-            f = 2.0 / (9.0 * dof)
-            gate = max(dof * (1.0 - f + 4.75 * math.sqrt(f)) ** 3, 20.0)
+        f = 2.0 / (9.0 * dof)
+        gate = max(dof * (1.0 - f + 4.75 * math.sqrt(f)) ** 3, 20.0)
         r = m // run_len
         warm = run_len > 1 and m % run_len != 0 and done[m - 1]
-        Rs = Ro[m - 1] if warm else R_CG[m]
-        cost = _fit_from(
-            p[m], g[m], cov[m], cov_g[r], use0, gc, Rs, o[m], iters, Wi, use, R, c, A, S, c0
-        )
-        if not cost <= gate and warm:
-            cost2 = _fit_from(
-                p[m],
-                g[m],
-                cov[m],
-                cov_g[r],
-                use0,
-                gc,
-                R_CG[m],
-                o[m],
-                iters,
-                Wi,
-                use,
-                R2,
-                c2,
-                A2,
-                S,
-                c0,
-            )
+        cost = np.inf
+        if warm:
+            for a in range(3):
+                c0[a] = ok_[a]
+            cost = _fit_from(p[m], g[m], cov[m], cov_g[r], use0, gc, Ro[m - 1], c0, iters, Wi,
+                             use, R, c, A, S)  # fmt: skip
+        kabsch = False
+        if not cost <= gate:  # the Kabsch start
+            cnt_w, sw = _moments_one(p[m], g[m], w[m], H, pcw, gcw, info)
+            if cnt_w < 3 or not sw > 0:
+                continue
+            if not _horn_one(H, Rk, N4, V4, sv) > 1e-9:  # collinear
+                continue
+            kabsch = True
+            for a in range(3):
+                c0[a] = pcw[a] + (Rk[a, 0] * (gc[0] - gcw[0]) + Rk[a, 1] * (gc[1] - gcw[1])
+                                  + Rk[a, 2] * (gc[2] - gcw[2]))  # fmt: skip
+            cost2 = _fit_from(p[m], g[m], cov[m], cov_g[r], use0, gc, Rk, c0, iters, Wi, use,
+                              R2, c2, A2, S)  # fmt: skip
             if cost2 < cost:
                 cost = cost2
                 R[:, :] = R2
                 c[:] = c2
                 A[:, :] = A2
-        if not cost <= gate:
-            continue
-        # rotation block of A^{-1}: solve A x = e_j for j = 0..2
-        ok = True
-        for j in range(3):
-            for i in range(6):
-                e6[i] = 1.0 if i == j else 0.0
-            if not _chol_solve6(A, e6, L, col):
-                ok = False
-                break
-            for i in range(3):
-                covt[m, i, j] = col[i]
-        if not ok:
-            covt[m] = np.nan
-            continue
-        Ro[m] = R
-        for a in range(3):
-            oo[m, a] = c[a] - (R[a, 0] * gc[0] + R[a, 1] * gc[1] + R[a, 2] * gc[2])
-        done[m] = True
-    return Ro, oo, covt, done
+        ok_out[m] = True
+        if cost <= gate and _chol6(A, L):
+            for j in range(3):
+                for i in range(6):
+                    e6[i] = 1.0 if i == j else 0.0
+                _chol_back6(L, e6, col)
+                for i in range(3):
+                    covt[m, i, j] = col[i]
+            Ro[m] = R
+            for a in range(3):
+                oo[m, a] = c[a] - (R[a, 0] * gc[0] + R[a, 1] * gc[1] + R[a, 2] * gc[2])
+            done[m] = True
+        else:  # no fit passed: the Kabsch fit (computed above unless the warm start passed)
+            if not kabsch:
+                cnt_w, sw = _moments_one(p[m], g[m], w[m], H, pcw, gcw, info)
+                ratio = _horn_one(H, Rk, N4, V4, sv) if cnt_w >= 3 and sw > 0 else 0.0
+                if not ratio > 1e-9:
+                    ok_out[m] = False
+                    continue
+            Ro[m] = Rk
+            for a in range(3):
+                oo[m, a] = pcw[a] - (Rk[a, 0] * gcw[0] + Rk[a, 1] * gcw[1] + Rk[a, 2] * gcw[2])
+            for a in range(3):
+                info[a, a] += 1e-12
+            if not _inv3_sym(info, covt[m]):
+                ok_out[m] = False
+    return Ro, oo, covt, ok_out, done
+
+
+@njit(cache=True, error_model="numpy")
+def whiten_rows(a, b, omega, cov_w, cov_G, ok):
+    """Generalised least squares rows of Hu 2024 eq. 11-12 (``stereo_points.
+    identify_and_dpacf``), in place: each epoch's three rows ``a`` (B,n,3,8) and ``b``
+    (B,n,3) are multiplied by ``L^-1``, ``L L^T = C = cov_w + [w x] cov_G [w x]^T`` (B,n,3,3
+    inputs, ``omega`` (B,n,3)). Epochs not ``ok`` (or whose C is not positive definite) are
+    zeroed and set not ``ok``."""
+    B, n = ok.shape
+    C = np.empty((3, 3))
+    T = np.empty((3, 3))
+    X = np.empty((3, 3))
+    L = np.zeros((3, 3))
+    for bi in range(B):
+        for k in range(n):
+            if ok[bi, k]:
+                w0, w1, w2 = omega[bi, k, 0], omega[bi, k, 1], omega[bi, k, 2]
+                # X = [w x]
+                X[0, 0], X[0, 1], X[0, 2] = 0.0, -w2, w1
+                X[1, 0], X[1, 1], X[1, 2] = w2, 0.0, -w0
+                X[2, 0], X[2, 1], X[2, 2] = -w1, w0, 0.0
+                G = cov_G[bi, k]
+                for r in range(3):
+                    for s in range(3):
+                        T[r, s] = X[r, 0] * G[0, s] + X[r, 1] * G[1, s] + X[r, 2] * G[2, s]
+                for r in range(3):
+                    for s in range(3):
+                        C[r, s] = cov_w[bi, k, r, s] + (
+                            T[r, 0] * X[s, 0] + T[r, 1] * X[s, 1] + T[r, 2] * X[s, 2]
+                        )
+                tr = C[0, 0] + C[1, 1] + C[2, 2]
+                for r in range(3):
+                    C[r, r] += 1e-12 * tr
+                # Cholesky C = L L^T
+                good = C[0, 0] > 0.0
+                if good:
+                    L[0, 0] = math.sqrt(C[0, 0])
+                    L[1, 0] = C[1, 0] / L[0, 0]
+                    L[2, 0] = C[2, 0] / L[0, 0]
+                    d1 = C[1, 1] - L[1, 0] ** 2
+                    good = d1 > 0.0
+                if good:
+                    L[1, 1] = math.sqrt(d1)
+                    L[2, 1] = (C[2, 1] - L[2, 0] * L[1, 0]) / L[1, 1]
+                    d2 = C[2, 2] - L[2, 0] ** 2 - L[2, 1] ** 2
+                    good = d2 > 0.0
+                if good:
+                    L[2, 2] = math.sqrt(d2)
+                    for col in range(8):
+                        y0 = a[bi, k, 0, col] / L[0, 0]
+                        y1 = (a[bi, k, 1, col] - L[1, 0] * y0) / L[1, 1]
+                        y2 = (a[bi, k, 2, col] - L[2, 0] * y0 - L[2, 1] * y1) / L[2, 2]
+                        a[bi, k, 0, col], a[bi, k, 1, col], a[bi, k, 2, col] = y0, y1, y2
+                    y0 = b[bi, k, 0] / L[0, 0]
+                    y1 = (b[bi, k, 1] - L[1, 0] * y0) / L[1, 1]
+                    y2 = (b[bi, k, 2] - L[2, 0] * y0 - L[2, 1] * y1) / L[2, 2]
+                    b[bi, k, 0], b[bi, k, 1], b[bi, k, 2] = y0, y1, y2
+                    continue
+                ok[bi, k] = False
+            for r in range(3):
+                b[bi, k, r] = 0.0
+                for col in range(8):
+                    a[bi, k, r, col] = 0.0

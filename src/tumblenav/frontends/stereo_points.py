@@ -49,7 +49,7 @@ class FrontEndSettings:
     max_condition: float = 1e8  # of the column-scaled normal equations
     min_eigengap: float = 0.02  # relative gap between principal moments for a defined DPACF
     max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
-    ls_every: int = 5  # epochs between least-squares solutions
+    ls_every: int = 10  # epochs between least-squares solutions
     g_fit: str = "full"  # G attitude: "full" (points' covariances) or "kabsch" (isotropic)
 
 
@@ -148,7 +148,7 @@ def weighted_kabsch(
     covariance the information form ``(sum w (|a|^2 I - a a^T))^-1`` (points of variance
     ``1/w`` per axis). With the points' covariances ``cov_C`` (B,K,3,3), and optionally the
     template's ``cov_g`` (B // run_len, K, 3, 3; in G), that fit is refined by Gauss-Newton
-    in the metric of the residuals' covariance (``_points_kernel.refine_rigid``;
+    in the metric of the residuals' covariance (``_points_kernel.align_rigid``;
     ``run_len``: the alignments are runs of that many consecutive epochs, each started from
     the previous one's result) and the covariance is the fit's. Why (beyond the paper, whose eq. 6-7
     build G from three points): a stereo point's error is an ellipsoid along its line of
@@ -158,13 +158,31 @@ def weighted_kabsch(
     degree, as in a perspective pose fit. Alignments whose refined cost fails its
     chi-square gate keep the Kabsch fit and covariance.
     """
+    p_C = np.ascontiguousarray(p_C, dtype=float)
+    g_G = np.ascontiguousarray(g_G, dtype=float)
+    w = np.ascontiguousarray(w, dtype=float)
+    if cov_C is not None:
+        cov_g = np.zeros((len(w) // run_len,) + w.shape[1:] + (3, 3)) if cov_g is None else cov_g
+        R_CG, o, cov_t, ok, _ = _points_kernel.align_rigid(
+            p_C,
+            g_G,
+            np.ascontiguousarray(cov_C, dtype=float),
+            np.ascontiguousarray(cov_g, dtype=float),
+            w,
+            4,
+            run_len,
+        )
+        eye = np.eye(3)
+        R_CG = np.where(ok[:, None, None], R_CG, eye)
+        o = np.where(ok[:, None], o, 0.0)
+        cov_t = np.where(ok[:, None, None], cov_t, eye)
+        R_GC = np.swapaxes(R_CG, -1, -2)
+        cov_G = R_GC @ cov_t @ np.swapaxes(R_GC, -1, -2)
+        return R_GC, o, cov_G, ok
     # sums over the points in a compiled loop (the numpy version of these few lines made
     # full-size temporaries of every (run, epoch, feature) vector; same formulas below)
-    Hm, pc, gc, info, cnt, sw = _points_kernel.kabsch_moments(
-        np.ascontiguousarray(p_C, dtype=float),
-        np.ascontiguousarray(g_G, dtype=float),
-        np.ascontiguousarray(w, dtype=float),
-    )  # Hm = sum w g p^T of the centred points, info = sum w (|a|^2 I - a a^T), a = p - pc
+    Hm, pc, gc, info, cnt, sw = _points_kernel.kabsch_moments(p_C, g_G, w)
+    # Hm = sum w g p^T of the centred points, info = sum w (|a|^2 I - a a^T), a = p - pc
     ok = (cnt >= 3) & (sw > 0)
     # the proper rotation of the SVD solution (V diag(1, 1, det) U^T), by Horn's quaternion
     # method in a compiled loop (twice as fast as the batched SVD; test against it)
@@ -176,25 +194,6 @@ def weighted_kabsch(
     eye = np.eye(3)
     info = np.where(ok[:, None, None], info, eye)
     cov_t = np.linalg.inv(info + 1e-12 * eye)
-    if cov_C is not None:
-        R_r, o_r, cov_r, done = _points_kernel.refine_rigid(
-            np.ascontiguousarray(p_C, dtype=float),
-            np.ascontiguousarray(g_G, dtype=float),
-            np.ascontiguousarray(cov_C, dtype=float),
-            np.ascontiguousarray(
-                np.zeros((len(w) // run_len,) + w.shape[1:] + (3, 3)) if cov_g is None else cov_g,
-                dtype=float,
-            ),
-            np.ascontiguousarray(np.where(ok[:, None], w, 0.0)),
-            np.ascontiguousarray(R_CG),
-            np.ascontiguousarray(o),
-            4,
-            run_len,
-        )
-        done &= ok
-        R_CG = np.where(done[:, None, None], R_r, R_CG)
-        o = np.where(done[:, None], o_r, o)
-        cov_t = np.where(done[:, None, None], cov_r, cov_t)
     R_GC = np.swapaxes(R_CG, -1, -2)
     cov_G = R_GC @ cov_t @ np.swapaxes(R_GC, -1, -2)
     return R_GC, o, cov_G, ok
@@ -433,13 +432,18 @@ def identify_and_dpacf(
         # taken at I_bar = 1 (the moments differ by less than a factor 2, the rate error's
         # axes by orders of magnitude): C = cov_w + [w x] cov_G [w x]^T, with R H = I_bar w.
         # The rate at k does not use the attitude at k, so the two terms are independent.
-        wx = _skew(np.nan_to_num(omega_G))
-        C = np.nan_to_num(cov_w) + wx @ np.nan_to_num(cov_G) @ np.swapaxes(wx, -1, -2)
-        C = np.where(ok[..., None, None], C, np.eye(3))
-        C = C + 1e-12 * np.trace(C, axis1=-2, axis2=-1)[..., None, None] * np.eye(3)
-        Lc = np.linalg.cholesky(C)
-        a = np.linalg.solve(Lc, a)
-        b = np.linalg.solve(Lc, b[..., None])[..., 0]
+        # (compiled loop; the numpy batched Cholesky and solves cost a fifth of the front end)
+        ok = ok & np.all(np.isfinite(cov_w), axis=(-1, -2)) & np.all(np.isfinite(cov_G), (-1, -2))
+        a = np.ascontiguousarray(a)
+        b = np.ascontiguousarray(b)
+        _points_kernel.whiten_rows(
+            a,
+            b,
+            np.ascontiguousarray(np.nan_to_num(omega_G)),
+            np.ascontiguousarray(np.nan_to_num(cov_w)),
+            np.ascontiguousarray(np.nan_to_num(cov_G)),
+            ok,
+        )
         w = ok.astype(float)
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
