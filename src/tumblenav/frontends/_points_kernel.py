@@ -761,39 +761,27 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
 
 
 @njit(cache=True, error_model="numpy")
-def whiten_rows(a, b, omega, cov_w, cov_G, ok):
+def whiten_rows(a, b, C_all, ok):
     """Generalised least squares rows of Hu 2024 eq. 11-12 (``stereo_points.
     identify_and_dpacf``), in place: each epoch's three rows ``a`` (B,n,3,8) and ``b``
-    (B,n,3) are multiplied by ``L^-1``, ``L L^T = C = cov_w + [w x] cov_G [w x]^T`` (B,n,3,3
-    inputs, ``omega`` (B,n,3)). Epochs not ``ok`` (or whose C is not positive definite) are
-    zeroed and set not ``ok``."""
+    (B,n,3) are multiplied by ``L^-1``, ``L L^T = C`` (B,n,3,3; plus 1e-12 of its trace on
+    the diagonal). Epochs not ``ok`` (or whose C is not positive definite) are zeroed and
+    set not ``ok``."""
     B, n = ok.shape
     C = np.empty((3, 3))
-    T = np.empty((3, 3))
-    X = np.empty((3, 3))
     L = np.zeros((3, 3))
     for bi in range(B):
         for k in range(n):
             if ok[bi, k]:
-                w0, w1, w2 = omega[bi, k, 0], omega[bi, k, 1], omega[bi, k, 2]
-                # X = [w x]
-                X[0, 0], X[0, 1], X[0, 2] = 0.0, -w2, w1
-                X[1, 0], X[1, 1], X[1, 2] = w2, 0.0, -w0
-                X[2, 0], X[2, 1], X[2, 2] = -w1, w0, 0.0
-                G = cov_G[bi, k]
                 for r in range(3):
                     for s in range(3):
-                        T[r, s] = X[r, 0] * G[0, s] + X[r, 1] * G[1, s] + X[r, 2] * G[2, s]
-                for r in range(3):
-                    for s in range(3):
-                        C[r, s] = cov_w[bi, k, r, s] + (
-                            T[r, 0] * X[s, 0] + T[r, 1] * X[s, 1] + T[r, 2] * X[s, 2]
-                        )
+                        C[r, s] = C_all[bi, k, r, s]
                 tr = C[0, 0] + C[1, 1] + C[2, 2]
                 for r in range(3):
                     C[r, r] += 1e-12 * tr
                 # Cholesky C = L L^T
                 good = C[0, 0] > 0.0
+                d1 = d2 = 0.0
                 if good:
                     L[0, 0] = math.sqrt(C[0, 0])
                     L[1, 0] = C[1, 0] / L[0, 0]

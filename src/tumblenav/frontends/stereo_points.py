@@ -299,7 +299,7 @@ def photogrammetric_frames(
 def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, Array]:
     """Rate of G w.r.t. I in G and its per-axis variance (B,n): :func:`rates_and_covariance`
     with the covariance's trace / 3."""
-    omega, cov = rates_and_covariance(R_GI, cov_G, dt, h)
+    omega, _, cov = rates_and_covariance(R_GI, cov_G, dt, h)
     return omega, np.trace(cov, axis1=-2, axis2=-1) / 3.0
 
 
@@ -315,8 +315,8 @@ def _fit_factors(h: int) -> tuple[float, float, float]:
 
 
 def rates_and_covariance(
-    R_GI: Array, cov_G: Array, dt: float, h: int, bias_epochs: int = 20
-) -> tuple[Array, Array]:
+    R_GI: Array, cov_G: Array, dt: float, h: int, bias_epochs: int = 100
+) -> tuple[Array, Array, Array]:
     """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
 
     Hu 2024 eq. 15-16 take a numerical derivative. Here the rotation vectors
@@ -336,7 +336,14 @@ def rates_and_covariance(
     smaller expected mean square error: the cubic one where the attitudes are precise (near
     range, where the bias dominates by a factor 10), the line where they are noisy, with the
     bias's mean square added to its covariance. ``cov_G`` is taken as constant over the
-    window. NaN unless all ``2h + 1`` epochs have a G attitude."""
+    window.
+
+    Returns the rate, the covariance of the fit's noise (the ``2h`` attitudes other than
+    the centre's) and the full covariance, which adds the centre attitude's part: every
+    ``phi_j`` is taken relative to ``R_GI(k)``, whose error ``psi`` enters turned by
+    ``j dt omega``, which leaves ``-[omega x] psi`` in the slope (``[omega x] cov_G [omega
+    x]^T``; a fifth of the line's variance for this tumble). NaN unless all ``2h + 1``
+    epochs have a G attitude."""
     q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
@@ -363,7 +370,8 @@ def rates_and_covariance(
         cov = np.where(cubic[..., None, None], fc * C, fl * C + b2[..., None] * eye)
     omega = np.where(good[..., None], omega, np.nan)
     cov = np.where(good[..., None, None], cov, np.nan)
-    return omega, cov
+    wx = _skew(np.nan_to_num(omega))
+    return omega, cov, cov + wx @ np.nan_to_num(cov_G) @ np.swapaxes(wx, -1, -2)
 
 
 def _skew(v: Array) -> Array:
@@ -418,8 +426,8 @@ def identify_and_dpacf(
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
-    covariance of the inertia ratios (eq. 19). With the rates' full covariances ``cov_w``
-    (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
+    covariance of the inertia ratios (eq. 19). With the covariances of the rates' fit noise
+    ``cov_w`` (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
     ``1 / var_w``."""
     B, n = omega_G.shape[:2]
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
@@ -428,22 +436,17 @@ def identify_and_dpacf(
         w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
     else:
         # Generalised least squares (beyond the paper's eq. 13): each epoch's three rows are
-        # whitened by the covariance of their residual a X - b = I_bar d_omega + [R H x] d_psi,
-        # taken at I_bar = 1 (the moments differ by less than a factor 2, the rate error's
-        # axes by orders of magnitude): C = cov_w + [w x] cov_G [w x]^T, with R H = I_bar w.
-        # The rate at k does not use the attitude at k, so the two terms are independent.
+        # whitened by the covariance of their residual a X - b = I_bar d_omega + [R H x] psi,
+        # psi the G attitude error at k, R H = I_bar omega. The rate's error is its fit's
+        # noise plus -[omega x] psi (rates_and_covariance), so psi enters as
+        # ([I_bar omega x] - I_bar [omega x]) psi, which vanishes at I_bar = 1: with I_bar = 1
+        # (the moments differ by less than a factor 2, the rate error's axes by orders of
+        # magnitude) C = cov_w, the fit's noise only.
         # (compiled loop; the numpy batched Cholesky and solves cost a fifth of the front end)
-        ok = ok & np.all(np.isfinite(cov_w), axis=(-1, -2)) & np.all(np.isfinite(cov_G), (-1, -2))
+        ok = ok & np.all(np.isfinite(cov_w), axis=(-1, -2))
         a = np.ascontiguousarray(a)
         b = np.ascontiguousarray(b)
-        _points_kernel.whiten_rows(
-            a,
-            b,
-            np.ascontiguousarray(np.nan_to_num(omega_G)),
-            np.ascontiguousarray(np.nan_to_num(cov_w)),
-            np.ascontiguousarray(np.nan_to_num(cov_G)),
-            ok,
-        )
+        _points_kernel.whiten_rows(a, b, np.ascontiguousarray(np.nan_to_num(cov_w)), ok)
         w = ok.astype(float)
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
@@ -561,7 +564,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     )
     R_GI = R_GC @ R_CL @ R_LI
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
-    omega_G, cov_w = rates_and_covariance(R_GI, cov_G, dt, s.rate_half_window)
+    omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, s.rate_half_window)
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
         omega_G,
@@ -570,7 +573,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_G,
         s,
         delay=s.rate_half_window,
-        cov_w=cov_w if s.g_fit == "full" else None,
+        cov_w=cov_fit if s.g_fit == "full" else None,
     )
     return PointsFrontEnd(
         t=t,
