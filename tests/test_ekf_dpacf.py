@@ -545,11 +545,11 @@ def test_frame_measurement_and_its_jacobian():
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 0, 2 and 3 of these seeds
-        (False, {"constraint_curvature": True}, 1e-6, 200.0, [0, 2, 3, 7], "diverge"),
-        # at 5e-5 rad, asking for a DPACF frame within 0.005 rad, run 6 starts at 57.5 s and
+        # ekf-baseline with the curvature term diverges in runs 2, 11 and 12 of these seeds
+        (False, {"constraint_curvature": True}, 1e-6, 200.0, [2, 11, 12, 9], "diverge"),
+        # at 5e-5 rad, asking for a DPACF frame within 0.01 rad, run 6 starts at 57 s and
         # run 0 never does (with the default 0.05 rad every run starts by 22.5 s)
-        (True, {"max_dpacf_sigma_rad": 0.005}, 5e-5, 100.0, [6, 0], "never"),
+        (True, {"max_dpacf_sigma_rad": 0.01}, 5e-5, 100.0, [6, 0], "never"),
     ],
 )
 def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration, runs, expect):
@@ -826,10 +826,10 @@ def test_refine_start_pose_recovers_the_pose_with_an_honest_covariance():
 
 
 def test_start_waits_for_the_ratios_but_not_forever():
-    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 13.5 s
-    (17.5 s before the full-covariance G fit, when the least-squares ratios were then 0.27
-    off with 1-sigma 0.1, docs/results/hu2024.md; now the default gate of 0.03 no longer
-    delays this run). Asking for ratios within 0.005, the filter waits for them, and never
+    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 18 s
+    (17.5 s before the full-covariance G fit, when the least-squares ratios were 0.27 off
+    with 1-sigma 0.1, docs/results/hu2024.md; the default gate of 0.03 no longer delays
+    this run). Asking for ratios within 0.005, the filter waits for them (34 s), and never
     longer than ``max_ratio_wait_s`` after the frame was ready; both estimators start
     together."""
     from tumblenav.campaign.store import run_seed
@@ -848,7 +848,7 @@ def test_start_waits_for_the_ratios_but_not_forever():
 
     free = start(max_ratio_sigma=None)
     gated = start(max_ratio_sigma=0.005)
-    assert 12.0 < free < 16.0 and gated > free + 5.0
+    assert 15.0 < free < 20.0 and gated > free + 5.0
     assert start(False, max_ratio_sigma=0.005) == gated  # ekf-baseline starts then too
     assert free < start(max_ratio_sigma=0.005, max_ratio_wait_s=1.0) <= free + 1.0 + 1e-9
 
