@@ -672,7 +672,7 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
     R = np.empty((3, 3))
     R2 = np.empty((3, 3))
     Rk = np.empty((3, 3))
-    ok_ = np.empty(3)
+    pm = np.empty(3)  # centroid of the points
     e6 = np.zeros(6)
     col = np.empty(6)
     H = np.empty((3, 3))
@@ -686,7 +686,7 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
         cnt = 0
         for a in range(3):
             gc[a] = 0.0
-            ok_[a] = 0.0
+            pm[a] = 0.0
         for i in range(K):
             good = w[m, i] > 0
             for a in range(3):
@@ -696,12 +696,12 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
                 cnt += 1
                 for a in range(3):
                     gc[a] += g[m, i, a]
-                    ok_[a] += p[m, i, a]
+                    pm[a] += p[m, i, a]
         if cnt < 3:
             continue
         for a in range(3):
             gc[a] /= cnt
-            ok_[a] /= cnt  # centroid of the points: the warm start's translation
+            pm[a] /= cnt  # the warm start's translation
         dof = 3.0 * cnt - 6.0
         f = 2.0 / (9.0 * dof)
         gate = max(dof * (1.0 - f + 4.75 * math.sqrt(f)) ** 3, 20.0)
@@ -710,7 +710,7 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
         cost = np.inf
         if warm:
             for a in range(3):
-                c0[a] = ok_[a]
+                c0[a] = pm[a]
             cost = _fit_from(p[m], g[m], cov[m], cov_g[r], use0, gc, Ro[m - 1], c0, iters, Wi,
                              use, R, c, A, S)  # fmt: skip
         kabsch = False
