@@ -160,7 +160,7 @@ def _qmul(a, b, out):
 
 @njit(cache=True, error_model="numpy")
 def rate_fit(q, valid, h, dt):
-    """``stereo_points.rates_from_G`` after its quaternion conversion: the symmetric
+    """``stereo_points.rates_and_covariance`` after its quaternion conversion: the symmetric
     least-squares slopes of ``log(q(k+j) (x) conj(q(k)))`` over ``j = -h..h``, of a line
     and of a line plus a cubic term.
 

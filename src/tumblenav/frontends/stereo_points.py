@@ -303,13 +303,6 @@ def photogrammetric_frames(
     return R_GC, cov_G, template, known, known_at
 
 
-def rates_from_G(R_GI: Array, cov_G: Array, dt: float, h: int) -> tuple[Array, Array]:
-    """Rate of G w.r.t. I in G and its per-axis variance (B,n): :func:`rates_and_covariance`
-    with the covariance's trace / 3."""
-    omega, _, cov = rates_and_covariance(R_GI, cov_G, dt, h)
-    return omega, np.trace(cov, axis1=-2, axis2=-1) / 3.0
-
-
 def _fit_factors(h: int) -> tuple[float, float, float]:
     """For the slope fits over ``j = -h..h``: the variance factors ``sum_j c_j^2`` of the
     linear and the linear-plus-cubic fit (the slope's variance is that times
