@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from tumblenav.campaign.runner import run_campaign
-from tumblenav.campaign.store import CampaignStore, run_seed
+from tumblenav import io
+from tumblenav.campaign.store import CampaignStore, code_fingerprint, run_seed
 from tumblenav.cli import main
 from tumblenav.estimators import base as est_base
 from tumblenav.estimators.ekf_dpacf import HuEKF
@@ -112,6 +113,20 @@ def test_campaign_refuses_a_folder_of_another_campaign(tmp_path, capsys):
     )
     code, _, err = cli(["montecarlo", sc, "-e", "ekf-baseline", "--runs", 1, "-o", out], capsys)
     assert code == 2 and "different campaign" in err
+
+
+def test_campaign_refuses_runs_stored_by_other_code(tmp_path, capsys):
+    """Resuming must not mix runs computed by another version of the code."""
+    sc = short_scenario(tmp_path)
+    out = tmp_path / "mc"
+    args = ["montecarlo", sc, "-e", "ekf-dpacf", "--runs", 1, "--workers", 1, "-o", out]
+    assert cli(args, capsys)[0] == 0
+    spec = io.read_json(out / "campaign.json")
+    assert spec["code_fingerprint"] == code_fingerprint()
+    io.write_json({**spec, "code_fingerprint": "0.0.0+older"}, out / "campaign.json")
+    code, _, err = cli([*args[:4], "--runs", 2, "-o", out], capsys)
+    assert code == 2 and "other tumblenav code" in err and "0.0.0+older" in err
+    assert CampaignStore(out).done() == {0}  # nothing lost
 
 
 class _Flaky(HuEKF):

@@ -147,6 +147,11 @@ def run_campaign(
     todo = sorted(set(range(runs)) - store.done())
     workers = max(1, workers or os.cpu_count() or 1)
     con = console or Console(stderr=True)
+    if runs - len(todo) > 0:
+        con.print(
+            f"resuming {store.root}: {runs - len(todo)} of {runs} runs already stored, "
+            f"{len(todo)} to do"
+        )
     if todo:
         if chunk_size is None:
             batched = hasattr(est, "run_batch")

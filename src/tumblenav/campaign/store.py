@@ -2,7 +2,8 @@
 
 Layout of a campaign folder::
 
-    campaign.json          what was asked (scenario, estimator, runs, base seed); checked on resume
+    campaign.json          what was asked (scenario, estimator, runs, base seed) and the code
+                           that computed it (``code_fingerprint``); checked on resume
     runs/run_000042.npz    one finished run (errors, NEES, NIS), written atomically
     runs/run_000042.failed.json   a run that raised: its seed and the error
     summary.json           written at the end
@@ -14,6 +15,7 @@ for any N > k), so a resumed or enlarged campaign reproduces the same runs.
 
 from __future__ import annotations
 
+import hashlib
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+import tumblenav
 from tumblenav import io
 from tumblenav.errors import InputError
 from tumblenav.metrics import RunErrors
@@ -28,6 +31,22 @@ from tumblenav.metrics import RunErrors
 
 def run_seed(base_seed: int, k: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(base_seed, spawn_key=(k,))
+
+
+_FINGERPRINT: list[str] = []
+
+
+def code_fingerprint() -> str:
+    """The package version and a hash of its Python sources: runs stored by other code are
+    not mixed into a resumed campaign (they may differ from what this code computes)."""
+    if not _FINGERPRINT:
+        root = Path(tumblenav.__file__).parent
+        h = hashlib.sha256()
+        for f in sorted(root.rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+        _FINGERPRINT.append(f"{tumblenav.__version__}+{h.hexdigest()[:12]}")
+    return _FINGERPRINT[0]
 
 
 @dataclass(frozen=True)
@@ -45,7 +64,9 @@ class CampaignStore:
         return self.runs_dir / f"run_{k:06d}.failed.json"
 
     def open(self, spec: dict[str, Any]) -> None:
-        """Create the folder, or check that an existing one holds the same campaign."""
+        """Create the folder, or check that an existing one holds the same campaign, computed
+        by the same code (``code_fingerprint``, added to ``spec``) if it holds runs."""
+        spec = {**spec, "code_fingerprint": code_fingerprint()}
         self.runs_dir.mkdir(parents=True, exist_ok=True)
         spec_path = self.root / "campaign.json"
         if spec_path.exists():
@@ -56,6 +77,15 @@ class CampaignStore:
                 raise InputError(
                     f"holds a different campaign ({', '.join(diff)} differ); "
                     "use another output folder",
+                    str(self.root),
+                )
+            stored = len(self.done()) + len(list(self.runs_dir.glob("run_*.failed.json")))
+            if stored and old.get("code_fingerprint") != spec["code_fingerprint"]:
+                raise InputError(
+                    f"holds {stored} runs computed by other tumblenav code "
+                    f"({old.get('code_fingerprint', 'unrecorded')}, now "
+                    f"{spec['code_fingerprint']}); resuming would mix their results with this "
+                    "code's: use another output folder (or delete its runs/ to recompute)",
                     str(self.root),
                 )
         io.write_json(spec, spec_path)
