@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tumblenav.campaign.runner import run_campaign
 from tumblenav import io
+from tumblenav.campaign.runner import run_campaign
 from tumblenav.campaign.store import CampaignStore, code_fingerprint, run_seed
 from tumblenav.cli import main
 from tumblenav.estimators import base as est_base
