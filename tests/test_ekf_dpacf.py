@@ -545,11 +545,12 @@ def test_frame_measurement_and_its_jacobian():
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 2, 11 and 12 of these seeds
-        (False, {"constraint_curvature": True}, 1e-6, 200.0, [2, 11, 12, 9], "diverge"),
-        # at 5e-5 rad, asking for a DPACF frame within 0.01 rad, run 6 starts at 57 s and
-        # run 0 never does (with the default 0.05 rad every run starts by 22.5 s)
-        (True, {"max_dpacf_sigma_rad": 0.01}, 5e-5, 100.0, [6, 0], "never"),
+        # ekf-baseline with the curvature term diverges in runs 4, 8 and 14 of these seeds
+        # (chaotic: re-chosen whenever the front end changes)
+        (False, {"constraint_curvature": True}, 1e-6, 200.0, [4, 8, 14, 9], "diverge"),
+        # at 5e-5 rad, asking for a DPACF frame within 0.01 rad, run 6 starts at 47 s and
+        # run 15 never does (with the default 0.05 rad every run starts by 22.5 s)
+        (True, {"max_dpacf_sigma_rad": 0.01}, 5e-5, 100.0, [6, 15], "never"),
     ],
 )
 def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration, runs, expect):
@@ -912,7 +913,7 @@ def test_features_from_rotation_refines_features_and_mass_centre():
 
     s = load_scenario("hu2024").with_updates(duration_s=32.0, steady_state_window_s=[30.0, 32.0])
     n = s.chaser.orbit.mean_motion_rad_s
-    tun = hu.parse_tuning({})
+    tun = hu.parse_tuning({"template_refine_s": 0})  # the template of one sighting
     sims = [simulate(s, run_seed(5, k)) for k in range(16)]
     fe = hu.frontend([m for _, m in sims], tun)
     k = len(fe.t) - 1

@@ -908,3 +908,45 @@ def test_compiled_whitening_equals_numpy(seed):
     assert np.array_equal(okk, ok)
     assert np.allclose(aa[ok], ra[ok], atol=1e-10) and np.allclose(bb[ok], rb[ok], atol=1e-10)
     assert not aa[~ok].any() and not bb[~ok].any()
+
+
+def test_refined_template_steadies_g_and_is_causal():
+    """The template refitted to all views of its first 30 s (stereo_points._refine_template):
+    at a constant 17 m, 2e-5 rad, the G attitude's error about its mean (the G frame's
+    offset, which the principal frame absorbs) after the refinement is several times smaller
+    than with the one-sighting template (0.11-0.18 deg -> 0.016-0.029 deg measured over 8
+    runs); before it, G attitudes and the rates they fully determine are unchanged."""
+    from tumblenav import rotations as rot
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.estimators import ekf_dpacf as hu
+    from tumblenav.scenario import load_scenario
+    from tumblenav.simulation import simulate
+
+    s = load_scenario("hu2024").with_updates(
+        duration_s=45.0,
+        steady_state_window_s=[40.0, 45.0],
+        **{"target.v0_L_m_s": [0.0, 0.0, 0.0]},
+    )
+    sims = [simulate(s, run_seed(3, k)) for k in range(4)]
+    meas = [m for _, m in sims]
+    fe = {v: hu.frontend(meas, hu.parse_tuning({"template_refine_s": v})) for v in (0.0, 30.0)}
+    h = hu.parse_tuning({}).rate_half_window
+    for b, (truth, _) in enumerate(sims):
+        first = int(np.argmax(fe[0.0].known_at[b].any(axis=1)))
+        k_ref = first + 300
+        assert k_ref < len(fe[0.0].t) - 50
+        same = np.testing.assert_array_equal
+        same(fe[0.0].R_GI[b, :k_ref], fe[30.0].R_GI[b, :k_ref])
+        same(fe[0.0].omega_G[b, : k_ref - h], fe[30.0].omega_G[b, : k_ref - h])
+        spread = []
+        for f in fe.values():
+            kn = f.known[b]
+            g, ft = f.template_G[b][kn], truth.features_T[kn]
+            U, _, Vt = np.linalg.svd((ft - ft.mean(0)).T @ (g - g.mean(0)))
+            R_GT = Vt.T @ np.diag([1, 1, np.linalg.det(Vt.T @ U.T)]) @ U.T
+            ks = np.arange(k_ref, len(f.t))
+            ks = ks[np.all(np.isfinite(f.R_GI[b, ks]), axis=(-1, -2))]
+            R_true = R_GT @ rot.quat_to_matrix(truth.q_TI[ks])
+            e = rot.log_map(f.R_GI[b, ks] @ np.swapaxes(R_true, -1, -2))
+            spread.append(np.sqrt(np.mean(np.sum((e - e.mean(0)) ** 2, axis=1))))
+        assert spread[1] < 0.4 * spread[0]

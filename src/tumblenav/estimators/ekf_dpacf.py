@@ -141,6 +141,15 @@ class HuTuning(BaseModel):
         "for ekf-baseline (with 'joint' its tighter start on features expressed in its free, "
         "wrong principal frame stopped 71 instead of 14 of 500 runs at 2e-5 rad as diverged)",
     )
+    template_refine_s: float = Field(
+        30.0,
+        ge=0,
+        description="the front end refits its template (the features' G coordinates, from "
+        "their first sighting) to all their views over this many seconds after G's "
+        "definition, and computes G with it from then on (beyond the paper, "
+        "stereo_points._refine_template); 0: never (as until the seventh session). Both "
+        "estimators share the front end, so that they start on the same data",
+    )
     p0_mass_centre_floor_m: float = Field(
         0.015,
         ge=0,
@@ -428,66 +437,33 @@ def features_from_rotation(
     if len(have) < 10:
         return None
     j = have[t[have] <= t[have[0]] + window_s]
-    use = fe.usable[b, j] & fe.known_at[b, k][None, :]
-    fitted = use.sum(axis=0) >= 3
-    use &= fitted[None, :]
-    if use.sum() < 12 or fitted.sum() < 3:
-        return None
     R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
     Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
-    jj, ii = np.nonzero(use)
-    d = fe.p_L[b, j[jj], ii]  # (M,3)
-    idx = np.flatnonzero(fitted)
-    col = np.searchsorted(idx, ii)  # feature's block among the fitted ones
-    nf = len(idx)
-    dim = 6 + 3 * nf
-    f = np.nan_to_num(fe.template_G[b, idx] - np.nanmean(fe.template_G[b, idx], axis=0))
-    for _ in range(2):
-        lever = R_LG[jj] @ rot.skew(f[col])  # d error per G attitude error (in G)
-        C = fe.cov_L[b, j[jj], ii] + lever @ fe.cov_G[b, j[jj]] @ np.swapaxes(lever, -1, -2)
-        try:
-            W = np.linalg.inv(C)  # (M,3,3)
-        except np.linalg.LinAlgError:
-            return None
-        PW = np.swapaxes(Phi[jj], -1, -2) @ W  # (M,6,3)
-        RW = np.swapaxes(R_LG[jj], -1, -2) @ W  # (M,3,3)
-        Nm = np.zeros((dim, dim))
-        rhs = np.zeros(dim)
-        Nm[:6, :6] = np.sum(PW @ Phi[jj], axis=0)
-        rhs[:6] = np.sum(PW @ d[..., None], axis=0)[:, 0]
-        PWR = PW @ R_LG[jj]  # (M,6,3)
-        RWR = RW @ R_LG[jj]
-        RWd = (RW @ d[..., None])[..., 0]
-        for c in range(nf):
-            m = col == c
-            sc = slice(6 + 3 * c, 9 + 3 * c)
-            Nm[:6, sc] = PWR[m].sum(axis=0)
-            Nm[sc, :6] = Nm[:6, sc].T
-            Nm[sc, sc] = RWR[m].sum(axis=0)
-            rhs[sc] = RWd[m].sum(axis=0)
-        try:
-            Ninv = np.linalg.inv(Nm)
-        except np.linalg.LinAlgError:
-            return None
-        if not (np.all(np.isfinite(Ninv)) and np.all(np.isfinite(rhs))):
-            return None
-        x = Ninv @ rhs
-        f = x[6:].reshape(nf, 3)
-    pred = (Phi[jj] @ x[:6][:, None])[..., 0] + (R_LG[jj] @ f[col][..., None])[..., 0]
-    res = d - pred
-    chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
-    dof = max(3 * len(d) - dim, 1)
-    cov = Ninv[6:, 6:] * max(1.0, chi2 / dof)
+    g = fe.template_G[b]
+    out = stereo_points.joint_features(
+        Phi,
+        R_LG,
+        fe.p_L[b, j],
+        fe.cov_L[b, j],
+        fe.cov_G[b, j],
+        fe.usable[b, j] & fe.known_at[b, k][None, :],
+        g - np.nanmean(g, axis=0),
+    )
+    if out is None:
+        return None
+    _, f, cov, idx = out
     # the features' common shift (a mass centre error) must be determined
+    nf = len(idx)
     S = np.kron(np.ones((1, nf)) / nf, np.eye(3))
-    cov_c = S @ cov @ S.T
-    if not np.all(np.isfinite(cov)) or np.sqrt(np.max(np.linalg.eigvalsh(cov_c))) > 0.5:
+    if np.sqrt(np.max(np.linalg.eigvalsh(S @ cov @ S.T))) > 0.5:
         return None
     f_G = np.full((N, 3), np.nan)
     f_G[idx] = f
     cov_f = np.zeros((3 * N, 3 * N))
     sel = (3 * idx[:, None] + np.arange(3)).ravel()
     cov_f[np.ix_(sel, sel)] = cov
+    fitted = np.zeros(N, dtype=bool)
+    fitted[idx] = True
     return f_G, cov_f, fitted
 
 
@@ -1518,6 +1494,7 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
             min_ls_epochs=tun.min_ls_epochs,
             max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
             g_fit=tun.g_attitude_fit,
+            template_refine_s=tun.template_refine_s,
         ),
     )
     fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

@@ -51,6 +51,7 @@ class FrontEndSettings:
     max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
     ls_every: int = 10  # epochs between least-squares solutions
     g_fit: str = "full"  # G attitude: "full" (points' covariances) or "kabsch" (isotropic)
+    template_refine_s: float = 0.0  # refit the template over this much data (0: never)
 
 
 @dataclass
@@ -219,10 +220,18 @@ def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDA
 
 
 def photogrammetric_frames(
-    p_C: Array, cov_C: Array, usable: NDArray[np.bool_], full_cov: bool = True
+    p_C: Array,
+    cov_C: Array,
+    usable: NDArray[np.bool_],
+    full_cov: bool = True,
+    stop_after: int = 0,
+    info: dict | None = None,
 ) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_]]:
     """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3), its final mask and
-    the mask of features catalogued by each epoch (B,n,N)."""
+    the mask of features catalogued by each epoch (B,n,N). With ``stop_after`` > 0 the
+    attitudes are computed for the first ``stop_after`` epochs from G's definition only
+    (NaN after; see ``process``, the template's refinement). ``info``, if given, receives
+    ``cov_template`` (B,N,3,3), the template's covariance in G."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
     # covariance of the template coordinates (in G): the point's at its first sighting,
@@ -280,6 +289,11 @@ def photogrammetric_frames(
     # Pass 2 (vectorised over runs and epochs): G at every epoch from the visible features
     # catalogued by then (Kabsch), so G is kept through occlusions of the defining triplet.
     use = usable & known_at
+    if stop_after > 0:
+        first = np.where(known_at.any(axis=2).any(axis=1), np.argmax(known_at.any(axis=2), 1), n)
+        use &= (np.arange(n)[None, :] < (first + stop_after)[:, None])[..., None]
+    if info is not None:
+        info["cov_template"] = cov_tmpl
     w = np.where(use, w_all, 0.0).reshape(B * n, N)
     tmpl = np.broadcast_to(template[:, None], (B, n, N, 3)).reshape(B * n, N, 3)
     Rgc, _, cg, ok = weighted_kabsch(
@@ -301,6 +315,81 @@ def photogrammetric_frames(
     R_GC = np.where(ok[..., None, None], Rgc.reshape(B, n, 3, 3), np.nan)
     cov_G = np.where(ok[..., None, None], cg.reshape(B, n, 3, 3), np.nan)
     return R_GC, cov_G, template, known, known_at
+
+
+def joint_features(
+    Phi: Array, R_LG: Array, p: Array, cov: Array, cov_G: Array, use: NDArray[np.bool_], f0: Array
+) -> tuple[Array, Array, Array, NDArray[np.int64]] | None:
+    """Batch least squares for a rigid body's features about its mass centre, from m epochs
+    of points ``p`` (m,N,3) in a frame L, covariances ``cov`` (m,N,3,3), the measured
+    attitudes ``R_LG`` (m,3,3) of G (covariance ``cov_G`` (m,3,3), error in G) and a
+    translation model linear in K parameters, ``r(j) = Phi[j] a`` (Phi (m,3,K)):
+
+        ``p_i(j) = Phi[j] a + R_LG(j) f_i``
+
+    linear in ``[a, f_1 .. f_N]``. The rotation separates the features' common shift (the
+    mass centre) from the translation; each feature is fitted to all its views, so the
+    depth errors of a stereo point average over the viewing directions. Weights: each
+    point's covariance plus what the G attitude error does to it through its lever arm
+    ``f_i`` (``f0`` (N,3) at first, then the solution; one re-linearisation); the
+    covariance is scaled by the reduced chi-square when that exceeds one (beyond Hu 2024,
+    which takes the features from one stereo sighting).
+
+    Uses the features seen (``use`` (m,N)) at 3 epochs or more. Returns the translation
+    parameters ``a`` (K,), the features ``f`` (nf,3), their covariance (3nf,3nf) and their
+    indices (nf,), or None (fewer than 3 such features or 12 points, singular)."""
+    K = Phi.shape[2]
+    fitted = use.sum(axis=0) >= 3
+    use = use & fitted[None, :]
+    if use.sum() < 12 or fitted.sum() < 3:
+        return None
+    jj, ii = np.nonzero(use)
+    d = p[jj, ii]  # (M,3)
+    idx = np.flatnonzero(fitted)
+    col = np.searchsorted(idx, ii)  # the feature's block among the fitted ones
+    nf = len(idx)
+    dim = K + 3 * nf
+    f = np.nan_to_num(f0[idx])
+    R = R_LG[jj]
+    Ph = Phi[jj]
+    for _ in range(2):
+        lever = R @ _skew(f[col])  # point error per G attitude error (in G)
+        C = cov[jj, ii] + lever @ cov_G[jj] @ np.swapaxes(lever, -1, -2)
+        try:
+            W = np.linalg.inv(C)  # (M,3,3)
+        except np.linalg.LinAlgError:
+            return None
+        PW = np.swapaxes(Ph, -1, -2) @ W  # (M,K,3)
+        RW = np.swapaxes(R, -1, -2) @ W  # (M,3,3)
+        Nm = np.zeros((dim, dim))
+        rhs = np.zeros(dim)
+        Nm[:K, :K] = np.sum(PW @ Ph, axis=0)
+        rhs[:K] = np.sum(PW @ d[..., None], axis=0)[:, 0]
+        PWR = PW @ R  # (M,K,3)
+        RWR = RW @ R
+        RWd = (RW @ d[..., None])[..., 0]
+        for c in range(nf):
+            m = col == c
+            sc = slice(K + 3 * c, K + 3 + 3 * c)
+            Nm[:K, sc] = PWR[m].sum(axis=0)
+            Nm[sc, :K] = Nm[:K, sc].T
+            Nm[sc, sc] = RWR[m].sum(axis=0)
+            rhs[sc] = RWd[m].sum(axis=0)
+        try:
+            Ninv = np.linalg.inv(Nm)
+        except np.linalg.LinAlgError:
+            return None
+        if not (np.all(np.isfinite(Ninv)) and np.all(np.isfinite(rhs))):
+            return None
+        x = Ninv @ rhs
+        f = x[K:].reshape(nf, 3)
+    res = d - (Ph @ x[:K][:, None])[..., 0] - (R @ f[col][..., None])[..., 0]
+    chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
+    dof = max(3 * len(d) - dim, 1)
+    cov_f = Ninv[K:, K:] * max(1.0, chi2 / dof)
+    if not np.all(np.isfinite(cov_f)):
+        return None
+    return x[:K], f, cov_f, idx
 
 
 def _fit_factors(h: int) -> tuple[float, float, float]:
@@ -533,6 +622,88 @@ def identify_and_dpacf(
     return R_GT, moments, q_TI, cov_TI, cov_phi, cov_p
 
 
+def _refine_template(
+    t, n_ref, h, dt, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl,
+    R_GI, cov_G, R_CL, R_LI, omega_G, cov_fit, cov_w,
+):  # fmt: skip
+    """The template refined over the first ``n_ref`` epochs of G, and G from then on with it
+    (beyond Hu 2024, whose G comes from three points of one sighting).
+
+    The template (each feature's G coordinates at its first sighting: one stereo point,
+    8 mm deep at 17 m and 2e-5 rad) has errors fixed in G that the G attitude fit turns
+    into view-dependent attitude errors, which do not average out in the rates. At epoch
+    ``k_ref = first + n_ref`` the features are refitted jointly to all their views so far
+    (``joint_features``, with a quadratic translation in L, which is the Hill motion to
+    0.1 mm over 30 s), in the axes of the G attitudes measured so far, so that G keeps its
+    orientation; the other features' coordinates shift with the fitted ones' mean. Causal:
+    G attitudes at epochs >= k_ref use the refined template; those at ``k_ref - 2h ..
+    k_ref`` are recomputed with it for the rates at epochs >= ``k_ref - h`` (each available
+    at its epoch + h >= k_ref), which with the least-squares rows of those epochs (``R_GI_ls``)
+    use the refined frame; earlier rates keep the first one.
+
+    Returns the G attitude and covariance (B,n,...) as reported at each epoch, the final
+    template, the attitudes of the least-squares rows, and the rates and covariances."""
+    B, n, N = usable.shape
+    valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
+    has = known_at.any(axis=2)
+    first = np.where(has.any(axis=1), np.argmax(has, axis=1), n)
+    k_ref = first + n_ref
+    new_t = template.copy()
+    new_c = cov_tmpl.copy()
+    for b in np.flatnonzero(k_ref < n):
+        j = np.flatnonzero(valid[b, first[b] : k_ref[b]]) + first[b]
+        if len(j) < 10:
+            continue
+        R_LG = R_LI[b, j] @ np.swapaxes(R_GI[b, j], -1, -2)
+        tau = (t[j] - t[j[0]])[:, None, None]
+        eye = np.eye(3)[None]
+        Phi = np.concatenate([np.broadcast_to(eye, tau.shape[:1] + (3, 3)), tau * eye,
+                              0.5 * tau**2 * eye], axis=2)  # fmt: skip
+        use = usable[b, j] & known_at[b, k_ref[b] - 1][None, :]
+        g = template[b]
+        out = joint_features(Phi, R_LG, p_L[b, j], cov_L[b, j], cov_G[b, j], use,
+                             g - np.nanmean(g, axis=0))  # fmt: skip
+        if out is None:
+            continue
+        _, f, cov_f, idx = out
+        c = np.mean(g[idx] - f, axis=0)
+        new_t[b] = g - c
+        new_t[b, idx] = f
+        for m, i in enumerate(idx):
+            new_c[b, i] = cov_f[3 * m : 3 * m + 3, 3 * m : 3 * m + 3]
+    # G from k_ref - 2h on, with the refined template (the first one where the fit failed;
+    # photogrammetric_frames stopped at k_ref)
+    redo = k_ref < n
+    if not redo.any():
+        return R_GI, cov_G, template, R_GI, omega_G, cov_fit, cov_w
+    k_ref = np.where(redo, k_ref, n)
+    from_ = np.maximum(k_ref - 2 * h, first)
+    ep = np.arange(n)[None, :]
+    use = usable & known_at & (ep >= from_[:, None])[..., None] & redo[:, None, None]
+    w = np.where(use, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
+    R2, _, c2, ok2 = weighted_kabsch(
+        p_C.reshape(B * n, N, 3),
+        np.broadcast_to(new_t[:, None], (B, n, N, 3)).reshape(B * n, N, 3),
+        w.reshape(B * n, N),
+        cov_C.reshape(B * n, N, 3, 3),
+        np.trace(new_c, axis1=-2, axis2=-1)[..., None, None] * np.eye(3),  # as in pass 2
+        run_len=n,
+    )
+    ok2 = ok2.reshape(B, n)
+    R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, n, 3, 3), np.nan) @ R_CL @ R_LI
+    cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, n, 3, 3), np.nan)
+    w2, cf2, cw2 = rates_and_covariance(R_GI2, cov_G2, dt, h)
+    after = ep >= k_ref[:, None]  # reported attitudes
+    rows = ep >= (k_ref - h)[:, None]  # rates and least-squares rows
+    R_GI_out = np.where(after[..., None, None], R_GI2, R_GI)
+    cov_G_out = np.where(after[..., None, None], cov_G2, cov_G)
+    R_GI_ls = np.where(rows[..., None, None], R_GI2, R_GI)
+    omega = np.where(rows[..., None], w2, omega_G)
+    cov_fit = np.where(rows[..., None, None], cf2, cov_fit)
+    cov_w = np.where(rows[..., None, None], cw2, cov_w)
+    return R_GI_out, cov_G_out, new_t, R_GI_ls, omega, cov_fit, cov_w
+
+
 def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
     """Run the whole front end on B runs (same rig, same time grid)."""
     s = settings or FrontEndSettings()
@@ -559,17 +730,26 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         p_C, cov_C, usable, skipped = triangulate(meas_list)
         p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
         cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
+    h = s.rate_half_window
+    n_ref = int(round(s.template_refine_s / dt)) if s.g_fit == "full" else 0
+    info: dict = {}
     R_GC, cov_G, template, known, known_at = photogrammetric_frames(
-        p_C, cov_C, usable, full_cov=s.g_fit == "full"
+        p_C, cov_C, usable, full_cov=s.g_fit == "full", stop_after=n_ref, info=info
     )
     R_GI = R_GC @ R_CL @ R_LI
+    omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h)
+    R_GI_ls = R_GI
+    if n_ref > 0:
+        R_GI, cov_G, template, R_GI_ls, omega_G, cov_fit, cov_w = _refine_template(
+            t, n_ref, h, dt, p_C, cov_C, p_L, cov_L, usable, known_at, template,
+            info["cov_template"], R_GI, cov_G, R_CL, R_LI, omega_G, cov_fit, cov_w,
+        )  # fmt: skip
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
-    omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, s.rate_half_window)
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
         omega_G,
         var_w,
-        R_GI,
+        R_GI_ls,
         cov_G,
         s,
         delay=s.rate_half_window,
