@@ -10,7 +10,8 @@ Both after the rotation that best aligns the features with the true ones (it mov
 centre), so that no frame enters.
 
 Usage: python benchmarks/hu2024_mass_centre.py [--noise 2e-5] [--runs 100]
-       [--method joint|rotation] [--scenario hu2024|FILE]
+       [--method joint|rotation] [--scenario hu2024|FILE] [--set key=value ...]
+       (the sixth session's template of one sighting: --set template_refine_s=0)
 Last line: ``rms_per_axis_mm=<rms error per axis> median_mm=<median |error|>
 nees_ls_median=<median NEES/dof of the least-squares covariance>``
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import ekf_dpacf as hu
@@ -33,8 +35,11 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=100)
     ap.add_argument("--method", choices=("joint", "rotation"), default="joint")
     ap.add_argument("--scenario", default="hu2024")
+    ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    sc = load_scenario(args.scenario).with_updates(**{"sensor.noise.angular_rad": args.noise})
+    sc = with_tuning(
+        load_scenario(args.scenario), args.set, **{"sensor.noise.angular_rad": args.noise}
+    )
     tun = hu.parse_tuning(sc.estimator.tuning)
     n = sc.chaser.orbit.mean_motion_rad_s
     sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in range(args.runs)]
