@@ -810,3 +810,82 @@ def whiten_rows(a, b, C_all, ok):
                 b[bi, k, r] = 0.0
                 for col in range(8):
                     a[bi, k, r, col] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def joint_normal_equations(Phi, R, p, cov, cov_G, col, f, nf):
+    """Normal equations of ``stereo_points.joint_features`` (its numpy form, the reference
+    in the tests, made a batch of (M,3,3) temporaries per run): rows ``p_i(j) = Phi[j] a +
+    R[j] f_i`` for the points with ``col[j, i] >= 0`` (the feature's block), weighted by
+    the inverse of ``cov[j, i] + R[j] [f_i x] cov_G[j] [f_i x]^T R[j]^T`` with the lever
+    arms ``f`` (nf,3). Returns N (K+3nf, K+3nf), rhs, ``sum p^T W p`` (the weighted squared
+    residual at the solution x is that less ``x . rhs``) and the number of points used."""
+    m, N_ = col.shape
+    K = Phi.shape[2]
+    dim = K + 3 * nf
+    Nm = np.zeros((dim, dim))
+    rhs = np.zeros(dim)
+    bb = 0.0
+    cnt = 0
+    L = np.empty((3, 3))
+    C = np.empty((3, 3))
+    W = np.empty((3, 3))
+    Sk = np.zeros((3, 3))
+    nu = K + 3
+    A = np.empty((3, nu))  # the point's design rows on its used columns
+    AW = np.empty((nu, 3))
+    cols = np.empty(nu, dtype=np.int64)
+    for k in range(K):
+        cols[k] = k
+    for j in range(m):
+        for i in range(N_):
+            c = col[j, i]
+            if c < 0:
+                continue
+            fx, fy, fz = f[c, 0], f[c, 1], f[c, 2]
+            Sk[0, 1], Sk[0, 2], Sk[1, 0], Sk[1, 2], Sk[2, 0], Sk[2, 1] = -fz, fy, fz, -fx, -fy, fx
+            for a in range(3):  # lever = R [f x]
+                for b in range(3):
+                    L[a, b] = R[j, a, 0] * Sk[0, b] + R[j, a, 1] * Sk[1, b] + R[j, a, 2] * Sk[2, b]
+            for a in range(3):
+                for b in range(3):
+                    s = cov[j, i, a, b]
+                    for q in range(3):
+                        for r in range(3):
+                            s += L[a, q] * cov_G[j, q, r] * L[b, r]
+                    C[a, b] = s
+            det = (C[0, 0] * (C[1, 1] * C[2, 2] - C[1, 2] * C[2, 1])
+                   - C[0, 1] * (C[1, 0] * C[2, 2] - C[1, 2] * C[2, 0])
+                   + C[0, 2] * (C[1, 0] * C[2, 1] - C[1, 1] * C[2, 0]))  # fmt: skip
+            if not det > 0.0:
+                continue
+            W[0, 0] = (C[1, 1] * C[2, 2] - C[1, 2] * C[2, 1]) / det
+            W[0, 1] = (C[0, 2] * C[2, 1] - C[0, 1] * C[2, 2]) / det
+            W[0, 2] = (C[0, 1] * C[1, 2] - C[0, 2] * C[1, 1]) / det
+            W[1, 0] = (C[1, 2] * C[2, 0] - C[1, 0] * C[2, 2]) / det
+            W[1, 1] = (C[0, 0] * C[2, 2] - C[0, 2] * C[2, 0]) / det
+            W[1, 2] = (C[0, 2] * C[1, 0] - C[0, 0] * C[1, 2]) / det
+            W[2, 0] = (C[1, 0] * C[2, 1] - C[1, 1] * C[2, 0]) / det
+            W[2, 1] = (C[0, 1] * C[2, 0] - C[0, 0] * C[2, 1]) / det
+            W[2, 2] = (C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]) / det
+            o = K + 3 * c
+            for b in range(3):
+                cols[K + b] = o + b
+            for a in range(3):
+                for k in range(K):
+                    A[a, k] = Phi[j, a, k]
+                for b in range(3):
+                    A[a, K + b] = R[j, a, b]
+            for u in range(nu):
+                for b in range(3):
+                    AW[u, b] = A[0, u] * W[0, b] + A[1, u] * W[1, b] + A[2, u] * W[2, b]
+            for a in range(3):
+                for b in range(3):
+                    bb += p[j, i, a] * W[a, b] * p[j, i, b]
+            cnt += 1
+            for u in range(nu):
+                cu = cols[u]
+                rhs[cu] += AW[u, 0] * p[j, i, 0] + AW[u, 1] * p[j, i, 1] + AW[u, 2] * p[j, i, 2]
+                for v in range(nu):
+                    Nm[cu, cols[v]] += AW[u, 0] * A[0, v] + AW[u, 1] * A[1, v] + AW[u, 2] * A[2, v]
+    return Nm, rhs, bb, cnt

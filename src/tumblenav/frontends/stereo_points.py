@@ -343,38 +343,22 @@ def joint_features(
     use = use & fitted[None, :]
     if use.sum() < 12 or fitted.sum() < 3:
         return None
-    jj, ii = np.nonzero(use)
-    d = p[jj, ii]  # (M,3)
     idx = np.flatnonzero(fitted)
-    col = np.searchsorted(idx, ii)  # the feature's block among the fitted ones
     nf = len(idx)
     dim = K + 3 * nf
+    col = np.where(use, np.cumsum(fitted) - 1, -1).astype(np.int64)  # feature's block
+    args = (
+        np.ascontiguousarray(Phi, dtype=float),
+        np.ascontiguousarray(R_LG, dtype=float),
+        np.ascontiguousarray(np.nan_to_num(p), dtype=float),
+        np.ascontiguousarray(np.nan_to_num(cov), dtype=float),
+        np.ascontiguousarray(np.nan_to_num(cov_G), dtype=float),
+        col,
+    )
     f = np.nan_to_num(f0[idx])
-    R = R_LG[jj]
-    Ph = Phi[jj]
     for _ in range(2):
-        lever = R @ _skew(f[col])  # point error per G attitude error (in G)
-        C = cov[jj, ii] + lever @ cov_G[jj] @ np.swapaxes(lever, -1, -2)
-        try:
-            W = np.linalg.inv(C)  # (M,3,3)
-        except np.linalg.LinAlgError:
-            return None
-        PW = np.swapaxes(Ph, -1, -2) @ W  # (M,K,3)
-        RW = np.swapaxes(R, -1, -2) @ W  # (M,3,3)
-        Nm = np.zeros((dim, dim))
-        rhs = np.zeros(dim)
-        Nm[:K, :K] = np.sum(PW @ Ph, axis=0)
-        rhs[:K] = np.sum(PW @ d[..., None], axis=0)[:, 0]
-        PWR = PW @ R  # (M,K,3)
-        RWR = RW @ R
-        RWd = (RW @ d[..., None])[..., 0]
-        for c in range(nf):
-            m = col == c
-            sc = slice(K + 3 * c, K + 3 + 3 * c)
-            Nm[:K, sc] = PWR[m].sum(axis=0)
-            Nm[sc, :K] = Nm[:K, sc].T
-            Nm[sc, sc] = RWR[m].sum(axis=0)
-            rhs[sc] = RWd[m].sum(axis=0)
+        # sums in a compiled loop (the numpy form made (M,3,3) temporaries: 4 ms per run)
+        Nm, rhs, bb, cnt = _points_kernel.joint_normal_equations(*args, np.ascontiguousarray(f), nf)
         try:
             Ninv = np.linalg.inv(Nm)
         except np.linalg.LinAlgError:
@@ -383,9 +367,8 @@ def joint_features(
             return None
         x = Ninv @ rhs
         f = x[K:].reshape(nf, 3)
-    res = d - (Ph @ x[:K][:, None])[..., 0] - (R @ f[col][..., None])[..., 0]
-    chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
-    dof = max(3 * len(d) - dim, 1)
+    chi2 = bb - x @ rhs  # at the solution, in the last weights
+    dof = max(3 * cnt - dim, 1)
     cov_f = Ninv[K:, K:] * max(1.0, chi2 / dof)
     if not np.all(np.isfinite(cov_f)):
         return None
@@ -404,7 +387,12 @@ def _fit_factors(h: int) -> tuple[float, float, float]:
 
 
 def rates_and_covariance(
-    R_GI: Array, cov_G: Array, dt: float, h: int, bias_epochs: int = 100
+    R_GI: Array,
+    cov_G: Array,
+    dt: float,
+    h: int,
+    bias_epochs: int = 100,
+    exclude: NDArray[np.bool_] | None = None,
 ) -> tuple[Array, Array, Array]:
     """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
 
@@ -432,11 +420,14 @@ def rates_and_covariance(
     ``phi_j`` is taken relative to ``R_GI(k)``, whose error ``psi`` enters turned by
     ``j dt omega``, which leaves ``-[omega x] psi`` in the slope (``[omega x] cov_G [omega
     x]^T``; a fifth of the line's variance for this tumble). NaN unless all ``2h + 1``
-    epochs have a G attitude."""
+    epochs have a G attitude, and at the epochs in ``exclude`` (B,n)."""
     q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
     om_l, om_c = _points_kernel.rate_fit(q, valid, h, dt)
+    if exclude is not None:  # epochs whose rate is not wanted (NaN, out of the bias mean)
+        om_l[exclude] = np.nan
+        om_c[exclude] = np.nan
     good = np.all(np.isfinite(om_l), axis=-1) & np.all(np.isfinite(cov_G), axis=(-1, -2))
     fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
     C = np.where(good[..., None, None], cov_G, 0.0) / dt**2
@@ -623,8 +614,8 @@ def identify_and_dpacf(
 
 
 def _refine_template(
-    t, n_ref, h, dt, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl,
-    R_GI, cov_G, R_CL, R_LI, omega_G, cov_fit, cov_w,
+    t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl, R_GI, cov_G,
+    R_CL, R_LI,
 ):  # fmt: skip
     """The template refined over the first ``n_ref`` epochs of G, and G from then on with it
     (beyond Hu 2024, whose G comes from three points of one sighting).
@@ -645,8 +636,10 @@ def _refine_template(
     template rotated by the mean rotation between the two G over ``k_ref - 2h .. k_ref``):
     median attitude 0.094 -> 0.102 deg over 500 runs at 2e-5 rad, no change at 1e-6 rad.
 
-    Returns the G attitude and covariance (B,n,...) as reported at each epoch, the final
-    template, the attitudes of the least-squares rows, and the rates and covariances."""
+    Returns the G attitude and covariance (B,n,...) as reported at each epoch (the first
+    template's before ``k_ref``, the refined one's from it), the final template, the
+    refined G attitudes and covariances of every epoch from ``k_ref - 2h`` (NaN before) and
+    ``k_ref`` (B,) (n where not refined); None if no run is."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     has = known_at.any(axis=2)
@@ -679,7 +672,7 @@ def _refine_template(
     # photogrammetric_frames stopped at k_ref)
     redo = k_ref < n
     if not redo.any():
-        return R_GI, cov_G, template, R_GI, omega_G, cov_fit, cov_w
+        return None
     k_ref = np.where(redo, k_ref, n)
     from_ = np.maximum(k_ref - 2 * h, first)
     ep = np.arange(n)[None, :]
@@ -696,16 +689,10 @@ def _refine_template(
     ok2 = ok2.reshape(B, n)
     R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, n, 3, 3), np.nan) @ R_CL @ R_LI
     cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, n, 3, 3), np.nan)
-    w2, cf2, cw2 = rates_and_covariance(R_GI2, cov_G2, dt, h)
-    after = ep >= k_ref[:, None]  # reported attitudes
-    rows = ep >= (k_ref - h)[:, None]  # rates and least-squares rows
-    R_GI_out = np.where(after[..., None, None], R_GI2, R_GI)
-    cov_G_out = np.where(after[..., None, None], cov_G2, cov_G)
-    R_GI_ls = np.where(rows[..., None, None], R_GI2, R_GI)
-    omega = np.where(rows[..., None], w2, omega_G)
-    cov_fit = np.where(rows[..., None, None], cf2, cov_fit)
-    cov_w = np.where(rows[..., None, None], cw2, cov_w)
-    return R_GI_out, cov_G_out, new_t, R_GI_ls, omega, cov_fit, cov_w
+    after = (ep >= k_ref[:, None])[..., None, None]
+    R_GI_out = np.where(after, R_GI2, R_GI)
+    cov_G_out = np.where(after, cov_G2, cov_G)
+    return R_GI_out, cov_G_out, new_t, R_GI2, cov_G2, k_ref
 
 
 def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
@@ -741,13 +728,31 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         p_C, cov_C, usable, full_cov=s.g_fit == "full", stop_after=n_ref, info=info
     )
     R_GI = R_GC @ R_CL @ R_LI
-    omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h)
-    R_GI_ls = R_GI
+    ref = None
     if n_ref > 0:
-        R_GI, cov_G, template, R_GI_ls, omega_G, cov_fit, cov_w = _refine_template(
-            t, n_ref, h, dt, p_C, cov_C, p_L, cov_L, usable, known_at, template,
-            info["cov_template"], R_GI, cov_G, R_CL, R_LI, omega_G, cov_fit, cov_w,
+        ref = _refine_template(
+            t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template,
+            info["cov_template"], R_GI, cov_G, R_CL, R_LI,
         )  # fmt: skip
+    if ref is None:
+        omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h)
+        R_GI_ls = R_GI
+    else:
+        R_GI, cov_G, template, R_GI2, cov_G2, k_ref = ref
+        # rates whose window has both templates' attitudes (k_ref - h .. k_ref + h - 1)
+        # come from the refined attitudes (each available at its epoch + h >= k_ref), the
+        # others from the attitudes as reported; the least-squares rows alike
+        ep = np.arange(len(t))[None, :]
+        mixed = (ep >= (k_ref - h)[:, None]) & (ep < (k_ref + h)[:, None])
+        omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h, exclude=mixed)
+        lo, hi = max(int(k_ref.min()) - 2 * h, 0), min(int(k_ref.max()) + 2 * h, len(t))
+        if lo < hi:
+            w2, cf2, cw2 = rates_and_covariance(R_GI2[:, lo:hi], cov_G2[:, lo:hi], dt, h)
+            mx = mixed[:, lo:hi]
+            omega_G[:, lo:hi] = np.where(mx[..., None], w2, omega_G[:, lo:hi])
+            cov_fit[:, lo:hi] = np.where(mx[..., None, None], cf2, cov_fit[:, lo:hi])
+            cov_w[:, lo:hi] = np.where(mx[..., None, None], cw2, cov_w[:, lo:hi])
+        R_GI_ls = np.where(mixed[..., None, None], R_GI2, R_GI)
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
