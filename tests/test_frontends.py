@@ -950,3 +950,38 @@ def test_refined_template_steadies_g_and_is_causal():
             e = rot.log_map(f.R_GI[b, ks] @ np.swapaxes(R_true, -1, -2))
             spread.append(np.sqrt(np.mean(np.sum((e - e.mean(0)) ** 2, axis=1))))
         assert spread[1] < 0.4 * spread[0]
+
+
+def test_joint_normal_equations_kernel_matches_numpy():
+    """The compiled sums of stereo_points.joint_features against their numpy form."""
+    from tumblenav import rotations as rot
+    from tumblenav.frontends import _points_kernel
+
+    rng = np.random.default_rng(17)
+    m, N, K, nf = 7, 4, 9, 3
+    Phi = rng.normal(size=(m, 3, K))
+    R = rot.exp_map(rng.normal(size=(m, 3)))
+    p = rng.normal(size=(m, N, 3))
+    A0 = rng.normal(size=(m, N, 3, 3))
+    cov = A0 @ np.swapaxes(A0, -1, -2) + 0.1 * np.eye(3)
+    B0 = rng.normal(size=(m, 3, 3)) * 0.01
+    cov_G = B0 @ np.swapaxes(B0, -1, -2)
+    col = rng.integers(-1, nf, size=(m, N))
+    f = rng.normal(size=(nf, 3))
+    Nm, rhs, bb, cnt = _points_kernel.joint_normal_equations(Phi, R, p, cov, cov_G, col, f, nf)
+    dim = K + 3 * nf
+    N_ref, r_ref, bb_ref = np.zeros((dim, dim)), np.zeros(dim), 0.0
+    for j, i in zip(*np.nonzero(col >= 0), strict=True):
+        c = col[j, i]
+        A = np.zeros((3, dim))
+        A[:, :K] = Phi[j]
+        A[:, K + 3 * c : K + 3 * c + 3] = R[j]
+        lever = R[j] @ rot.skew(f[c])
+        W = np.linalg.inv(cov[j, i] + lever @ cov_G[j] @ lever.T)
+        N_ref += A.T @ W @ A
+        r_ref += A.T @ W @ p[j, i]
+        bb_ref += p[j, i] @ W @ p[j, i]
+    assert cnt == np.sum(col >= 0)
+    np.testing.assert_allclose(Nm, N_ref, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(rhs, r_ref, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(bb, bb_ref, rtol=1e-10)
