@@ -503,13 +503,55 @@ def identify_and_dpacf(
     s: FrontEndSettings,
     delay: int = 0,
     cov_w: Array | None = None,
+    R_GI_report: Array | None = None,
+    before: tuple | None = None,
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
     covariance of the inertia ratios (eq. 19). With the covariances of the rates' fit noise
     ``cov_w`` (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
-    ``1 / var_w``."""
+    ``1 / var_w``. ``R_GI_report``: the G attitudes of the attitude measurement, if not
+    ``R_GI``. ``before = (omega, var_w, R_GI, cov_w, k_ref)``: the solutions at epochs before
+    ``k_ref`` (B,) use these rows instead (the template's refinement: the rows as they were
+    before it)."""
     B, n = omega_G.shape[:2]
+    a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
+    # The identification is re-solved every `ls_every` epochs and held in between (the
+    # attitude measurement still uses the G attitude of every epoch).
+    held = (np.arange(n) // s.ls_every) * s.ls_every
+    sel = np.unique(held)
+    # Sums of w a^T a, w a^T b, w |b|^2 and the count of epochs, up to epoch k - delay at
+    # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
+    # k may only use the least-squares sums up to k - h (compiled loop).
+    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
+    if before is not None:
+        # sums up to k - delay < k_ref - h differ only by the rows: add old minus new there
+        om_o, var_o, R_o, cw_o, k_ref = before
+        m = min(int(k_ref.max()), n)
+        early = sel < m
+        if early.any():
+            ao, bo, wo, oko = _ls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
+                                       None if cw_o is None else cw_o[:, :m])  # fmt: skip
+            se = sel[early]
+            No, ro, bbo, co = _points_kernel.normal_equations_at(ao, bo, wo, oko, delay, se)
+            Nn, rn, bbn, cn = _points_kernel.normal_equations_at(
+                np.ascontiguousarray(a[:, :m]), np.ascontiguousarray(b[:, :m]),
+                np.ascontiguousarray(w[:, :m]), np.ascontiguousarray(ok[:, :m]), delay, se,
+            )  # fmt: skip
+            use = se[None, :] < k_ref[:, None]  # (B, S_early)
+            N[:, early] += np.where(use[..., None, None], No - Nn, 0.0)
+            r[:, early] += np.where(use[..., None], ro - rn, 0.0)
+            bb[:, early] += np.where(use, bbo - bbn, 0.0)
+            cnt[:, early] += np.where(use, co - cn, 0)
+    return _solve_and_dpacf(N, r, bb, cnt, sel, held, s,
+                            R_GI if R_GI_report is None else R_GI_report, cov_G)  # fmt: skip
+
+
+def _ls_rows(
+    omega_G: Array, var_w: Array, R_GI: Array, cov_w: Array | None
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """Rows a (B,n,3,8), b (B,n,3), weights and mask of the least squares (Hu 2024 eq. 11-12),
+    whitened (see identify_and_dpacf)."""
     ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
     a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
     if cov_w is None:
@@ -528,14 +570,11 @@ def identify_and_dpacf(
         b = np.ascontiguousarray(b)
         _points_kernel.whiten_rows(a, b, np.ascontiguousarray(np.nan_to_num(cov_w)), ok)
         w = ok.astype(float)
-    # The identification is re-solved every `ls_every` epochs and held in between (the
-    # attitude measurement still uses the G attitude of every epoch).
-    held = (np.arange(n) // s.ls_every) * s.ls_every
-    sel = np.unique(held)
-    # Sums of w a^T a, w a^T b, w |b|^2 and the count of epochs, up to epoch k - delay at
-    # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
-    # k may only use the least-squares sums up to k - h (compiled loop).
-    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
+    return a, b, w, ok
+
+
+def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
+    """identify_and_dpacf from the least-squares sums at the solved epochs ``sel``."""
     d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
     Ns = N / (d[..., :, None] * d[..., None, :])
     ev = np.linalg.eigvalsh(Ns)
@@ -615,7 +654,7 @@ def identify_and_dpacf(
 
 def _refine_template(
     t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl, R_GI, cov_G,
-    R_CL, R_LI,
+    R_CL, R_LI, every,
 ):  # fmt: skip
     """The template refined over the first ``n_ref`` epochs of G, and G from then on with it
     (beyond Hu 2024, whose G comes from three points of one sighting).
@@ -627,10 +666,11 @@ def _refine_template(
     (``joint_features``, with a quadratic translation in L, which is the Hill motion to
     0.1 mm over 30 s), in the axes of the G attitudes measured so far, so that G keeps its
     orientation; the other features' coordinates shift with the fitted ones' mean. Causal:
-    G attitudes at epochs >= k_ref use the refined template; those at ``k_ref - 2h ..
-    k_ref`` are recomputed with it for the rates at epochs >= ``k_ref - h`` (each available
-    at its epoch + h >= k_ref), which with the least-squares rows of those epochs (``R_GI_ls``)
-    use the refined frame; earlier rates keep the first one.
+    G attitudes are reported with the first template before ``k_ref`` and with the refined
+    one from it; the rates of epochs from ``k_ref - h`` on (each available at its epoch + h
+    >= k_ref) come from the refined attitudes; and the least squares, a batch re-solved at
+    each solution, uses from ``k_ref`` on the rows of every epoch recomputed with the refined
+    template (past data reprocessed at k_ref), before it the rows as they were.
 
     Tried and not kept: keeping the first G's orientation across the switch (the refined
     template rotated by the mean rotation between the two G over ``k_ref - 2h .. k_ref``):
@@ -638,13 +678,13 @@ def _refine_template(
 
     Returns the G attitude and covariance (B,n,...) as reported at each epoch (the first
     template's before ``k_ref``, the refined one's from it), the final template, the
-    refined G attitudes and covariances of every epoch from ``k_ref - 2h`` (NaN before) and
-    ``k_ref`` (B,) (n where not refined); None if no run is."""
+    refined G attitudes and covariances of every epoch and ``k_ref`` (B,) (n where not
+    refined); None if no run is."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     has = known_at.any(axis=2)
     first = np.where(has.any(axis=1), np.argmax(has, axis=1), n)
-    k_ref = first + n_ref
+    k_ref = -(-(first + n_ref) // every) * every  # at a least-squares solution
     new_t = template.copy()
     new_c = cov_tmpl.copy()
     for b in np.flatnonzero(k_ref < n):
@@ -674,7 +714,7 @@ def _refine_template(
     if not redo.any():
         return None
     k_ref = np.where(redo, k_ref, n)
-    from_ = np.maximum(k_ref - 2 * h, first)
+    from_ = first
     ep = np.arange(n)[None, :]
     use = usable & known_at & (ep >= from_[:, None])[..., None] & redo[:, None, None]
     w = np.where(use, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
@@ -732,37 +772,37 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     if n_ref > 0:
         ref = _refine_template(
             t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template,
-            info["cov_template"], R_GI, cov_G, R_CL, R_LI,
+            info["cov_template"], R_GI, cov_G, R_CL, R_LI, s.ls_every,
         )  # fmt: skip
+    # the rates as available at each epoch (omega_G, cov_w) and the least squares' rows
+    before = None
     if ref is None:
         omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h)
-        R_GI_ls = R_GI
+        om_ls, cf_ls, cw_ls, R_ls = omega_G, cov_fit, cov_w, R_GI
     else:
-        R_GI, cov_G, template, R_GI2, cov_G2, k_ref = ref
-        # rates whose window has both templates' attitudes (k_ref - h .. k_ref + h - 1)
-        # come from the refined attitudes (each available at its epoch + h >= k_ref), the
-        # others from the attitudes as reported; the least-squares rows alike
-        ep = np.arange(len(t))[None, :]
-        mixed = (ep >= (k_ref - h)[:, None]) & (ep < (k_ref + h)[:, None])
-        omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h, exclude=mixed)
-        lo, hi = max(int(k_ref.min()) - 2 * h, 0), min(int(k_ref.max()) + 2 * h, len(t))
-        if lo < hi:
-            w2, cf2, cw2 = rates_and_covariance(R_GI2[:, lo:hi], cov_G2[:, lo:hi], dt, h)
-            mx = mixed[:, lo:hi]
-            omega_G[:, lo:hi] = np.where(mx[..., None], w2, omega_G[:, lo:hi])
-            cov_fit[:, lo:hi] = np.where(mx[..., None, None], cf2, cov_fit[:, lo:hi])
-            cov_w[:, lo:hi] = np.where(mx[..., None, None], cw2, cov_w[:, lo:hi])
-        R_GI_ls = np.where(mixed[..., None, None], R_GI2, R_GI)
+        R_GI_old, cov_G_old = R_GI, cov_G
+        R_GI, cov_G, template, R_ls, cov_G2, k_ref = ref
+        om_ls, cf_ls, cw_ls = rates_and_covariance(R_ls, cov_G2, dt, h)
+        m = min(int(k_ref.max()) + h, len(t))
+        om_o, cf_o, cw_o = rates_and_covariance(R_GI_old[:, :m], cov_G_old[:, :m], dt, h)
+        before = (om_o, np.trace(cw_o, axis1=-2, axis2=-1) / 3.0, R_GI_old[:, :m],
+                  cf_o if s.g_fit == "full" else None, k_ref)  # fmt: skip
+        early = np.arange(m)[None, :] < (k_ref - h)[:, None]  # the first template's rates
+        omega_G, cov_w = om_ls.copy(), cw_ls.copy()
+        omega_G[:, :m] = np.where(early[..., None], om_o, om_ls[:, :m])
+        cov_w[:, :m] = np.where(early[..., None, None], cw_o, cw_ls[:, :m])
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
-        omega_G,
-        var_w,
-        R_GI_ls,
+        om_ls,
+        np.trace(cw_ls, axis1=-2, axis2=-1) / 3.0,
+        R_ls,
         cov_G,
         s,
         delay=s.rate_half_window,
-        cov_w=cov_fit if s.g_fit == "full" else None,
+        cov_w=cf_ls if s.g_fit == "full" else None,
+        R_GI_report=R_GI,
+        before=before,
     )
     return PointsFrontEnd(
         t=t,
