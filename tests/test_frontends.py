@@ -1025,3 +1025,30 @@ def test_refinement_is_per_run_in_a_batch():
                                    rtol=1e-7, atol=1e-9, err_msg=key)  # fmt: skip
         np.testing.assert_allclose(getattr(both, key)[1:], getattr(refined, key),
                                    rtol=1e-7, atol=1e-9, err_msg=key)  # fmt: skip
+
+
+def test_refinement_leaves_no_gap_when_g_starts_off_the_solution_grid():
+    """G defined at epoch 13 (not a least-squares solution epoch): the switch is rounded up
+    to the next solution, and no epoch loses its G attitude or rate on the way."""
+    import dataclasses
+
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.estimators import ekf_dpacf as hu
+    from tumblenav.scenario import load_scenario
+    from tumblenav.simulation import simulate
+
+    s = load_scenario("hu2024").with_updates(duration_s=45.0, steady_state_window_s=[40.0, 45.0])
+    m = simulate(s, run_seed(4, 0))[1]
+    late = m.observed.copy()
+    late[:13] = False
+    m = dataclasses.replace(m, observed=late, uv=np.where(late[..., None], m.uv, np.nan))
+    fe0 = hu.frontend([m], hu.parse_tuning({"template_refine_s": 0}))
+    fe = hu.frontend([m], hu.parse_tuning({}))
+    assert np.argmax(fe.known_at[0].any(axis=1)) == 13
+    np.testing.assert_array_equal(
+        np.all(np.isfinite(fe0.R_GI[0]), axis=(-1, -2)),
+        np.all(np.isfinite(fe.R_GI[0]), axis=(-1, -2)),
+    )
+    np.testing.assert_array_equal(np.isfinite(fe0.omega_G[0]), np.isfinite(fe.omega_G[0]))
+    np.testing.assert_array_equal(fe0.R_GI[0, :320], fe.R_GI[0, :320])  # k_ref = 320
+    assert not np.allclose(fe0.R_GI[0, 320:], fe.R_GI[0, 320:])

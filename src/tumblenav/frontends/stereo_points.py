@@ -226,11 +226,13 @@ def photogrammetric_frames(
     full_cov: bool = True,
     stop_after: int = 0,
     info: dict | None = None,
+    stop_every: int = 1,
 ) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_]]:
     """G attitude R_GC (B,n,3,3) with covariance, the G template (B,N,3), its final mask and
     the mask of features catalogued by each epoch (B,n,N). With ``stop_after`` > 0 the
-    attitudes are computed for the first ``stop_after`` epochs from G's definition only
-    (NaN after; see ``process``, the template's refinement). ``info``, if given, receives
+    attitudes are computed for the first ``stop_after`` epochs from G's definition only,
+    rounded up to a multiple of ``stop_every`` (NaN after; see ``process``, the template's
+    refinement). ``info``, if given, receives
     ``cov_template`` (B,N,3,3), the template's covariance in G."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
@@ -291,7 +293,8 @@ def photogrammetric_frames(
     use = usable & known_at
     if stop_after > 0:
         first = np.where(known_at.any(axis=2).any(axis=1), np.argmax(known_at.any(axis=2), 1), n)
-        use &= (np.arange(n)[None, :] < (first + stop_after)[:, None])[..., None]
+        stop = -(-(first + stop_after) // stop_every) * stop_every
+        use &= (np.arange(n)[None, :] < stop[:, None])[..., None]
     if info is not None:
         info["cov_template"] = cov_tmpl
     w = np.where(use, w_all, 0.0).reshape(B * n, N)
@@ -662,7 +665,8 @@ def _refine_template(
     The template (each feature's G coordinates at its first sighting: one stereo point,
     8 mm deep at 17 m and 2e-5 rad) has errors fixed in G that the G attitude fit turns
     into view-dependent attitude errors, which do not average out in the rates. At epoch
-    ``k_ref = first + n_ref`` the features are refitted jointly to all their views so far
+    ``k_ref = first + n_ref`` (rounded up to a least-squares solution) the features are
+    refitted jointly to all their views so far
     (``joint_features``, with a quadratic translation in L, which is the Hill motion to
     0.1 mm over 30 s), in the axes of the G attitudes measured so far, so that G keeps its
     orientation; the other features' coordinates shift with the fitted ones' mean. Causal:
@@ -708,15 +712,13 @@ def _refine_template(
         new_t[b, idx] = f
         for m, i in enumerate(idx):
             new_c[b, i] = cov_f[3 * m : 3 * m + 3, 3 * m : 3 * m + 3]
-    # G from k_ref - 2h on, with the refined template (the first one where the fit failed;
-    # photogrammetric_frames stopped at k_ref)
+    # G at every epoch with the refined template (the first one where the fit failed), from
+    # which the epochs from k_ref on are reported (photogrammetric_frames stopped at k_ref)
     redo = k_ref < n
     if not redo.any():
         return None
     k_ref = np.where(redo, k_ref, n)
-    from_ = first
-    ep = np.arange(n)[None, :]
-    use = usable & known_at & (ep >= from_[:, None])[..., None] & redo[:, None, None]
+    use = usable & known_at & redo[:, None, None]
     w = np.where(use, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
     R2, _, c2, ok2 = weighted_kabsch(
         p_C.reshape(B * n, N, 3),
@@ -729,7 +731,7 @@ def _refine_template(
     ok2 = ok2.reshape(B, n)
     R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, n, 3, 3), np.nan) @ R_CL @ R_LI
     cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, n, 3, 3), np.nan)
-    after = (ep >= k_ref[:, None])[..., None, None]
+    after = (np.arange(n)[None, :] >= k_ref[:, None])[..., None, None]
     R_GI_out = np.where(after, R_GI2, R_GI)
     cov_G_out = np.where(after, cov_G2, cov_G)
     return R_GI_out, cov_G_out, new_t, R_GI2, cov_G2, k_ref
@@ -765,8 +767,9 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     n_ref = int(round(s.template_refine_s / dt)) if s.g_fit == "full" else 0
     info: dict = {}
     R_GC, cov_G, template, known, known_at = photogrammetric_frames(
-        p_C, cov_C, usable, full_cov=s.g_fit == "full", stop_after=n_ref, info=info
-    )
+        p_C, cov_C, usable, full_cov=s.g_fit == "full", stop_after=n_ref, info=info,
+        stop_every=s.ls_every,
+    )  # fmt: skip
     R_GI = R_GC @ R_CL @ R_LI
     ref = None
     if n_ref > 0:
