@@ -345,15 +345,22 @@ def _absorb(P, dx, HP, S, nu):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fej):
+def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fej, x_lin):
     """``ekf_dpacf._update_sequential`` for one run: the DPACF attitude (eq. 31), then each
-    visible feature (eq. 32-35), all linearised at the prior. Returns (NIS, dof)."""
+    visible feature (eq. 32-35), all linearised at ``x_lin`` (the prior, or an iterate of
+    the iterated update: then each innovation adds ``H (x_lin boxminus prior)``). Returns
+    (NIS, dof)."""
     d = P.shape[0]
     dx = np.zeros(d)
     nis = 0.0
     dof = 0
+    # delta = x_lin boxminus x (zero unless iterating)
+    dl = np.zeros(d)
+    _boxminus_q(x_lin[_NQ : _NQ + 4], x[_NQ : _NQ + 4], dl[0:3])
+    for i in range(3, d):
+        dl[i] = x_lin[i + 1] - x[i + 1]
     Rq = np.empty((3, 3))
-    _qmat(x[_NQ : _NQ + 4], Rq)
+    _qmat(x_lin[_NQ : _NQ + 4], Rq)
     R_LT = _mm(R_LI[k], Rq.T.copy())
     HP = np.empty((3, d))
     S = np.empty((3, 3))
@@ -369,17 +376,19 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
                     HP[a, j] = P[_SA + a, j]
                 for c in range(3):
                     S[a, c] = HP[a, _SA + c] + R0[a, c]
-            _boxminus_q(q_meas[k], x[_NQ : _NQ + 4], nu)
+            _boxminus_q(q_meas[k], x_lin[_NQ : _NQ + 4], nu)
+            for a in range(3):
+                nu[a] += dl[_SA + a]
             nis += _absorb(P, dx, HP, S, nu)
             dof += 3
-    r = x[_NR : _NR + 3].copy()
+    r = x_lin[_NR : _NR + 3].copy()
     Hth = np.empty((3, 3))
     for i in range(N):
         if not usable[k, i]:
             continue
         fo = _NF + 3 * i
         fe = _SF + 3 * i
-        fl = x[fo : fo + 3].copy()
+        fl = x_lin[fo : fo + 3].copy()
         if fej and np.isfinite(f_lin[i, 0]):
             fl[:] = f_lin[i]
         # Hth = R_LT [fl x]
@@ -399,10 +408,12 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
                 for m in range(3):
                     s += HP[a, _SA + m] * Hth[c, m] + HP[a, fe + m] * R_LT[c, m]
                 S[a, c] = s
-            # innovation against the prior prediction, minus what the earlier blocks moved
-            s = p_L[k, i, a] - r[a] - dx[_SR + a]
+            # innovation against the prediction at x_lin (plus H delta), minus what the
+            # earlier blocks moved
+            s = p_L[k, i, a] - r[a] - dx[_SR + a] + dl[_SR + a]
             for m in range(3):
-                s -= R_LT[a, m] * x[fo + m] + Hth[a, m] * dx[_SA + m] + R_LT[a, m] * dx[fe + m]
+                s -= R_LT[a, m] * x_lin[fo + m] + Hth[a, m] * dx[_SA + m] + R_LT[a, m] * dx[fe + m]
+                s += Hth[a, m] * dl[_SA + m] + R_LT[a, m] * dl[fe + m]
             nu[a] = s
         nis += _absorb(P, dx, HP, S, nu)
         dof += 3
@@ -726,6 +737,8 @@ def run_filter_kernel(
     S_turn,
     skip_start,
     att_update,
+    iter_var,
+    iter_max,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
@@ -736,7 +749,9 @@ def run_filter_kernel(
     of their half turns ``p_turn`` (B,n,3) and the frame error given each turn, ``mu_turn``
     (B,n,3,3) and ``S_turn`` (B,n,3,3,3). ``skip_start``: no update at the start epoch (a
     refined start, ``ekf_dpacf.refine_start_pose``, has used it). ``att_update``: update with
-    the attitude measurement (else it only votes on the half turns)."""
+    the attitude measurement (else it only votes on the half turns). ``iter_var``: where the
+    prior attitude's variance (trace) exceeds it, the update is iterated ``iter_max`` more
+    times (relinearised at the last posterior; 0: never)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     keep = out_x.shape[1] > 0
@@ -800,10 +815,27 @@ def run_filter_kernel(
                             f_first[i] = x[_NF + 3 * i : _NF + 3 * i + 3]
                 nis_k, dof_k = 0.0, 0
                 if upd:
+                    # iterated update when the prior attitude is poorly known (after a gap):
+                    # relinearise at the posterior, from the same prior
+                    its = 0
+                    if iter_var > 0.0:
+                        tr = P[_SA, _SA] + P[_SA + 1, _SA + 1] + P[_SA + 2, _SA + 2]
+                        if tr > iter_var:
+                            its = iter_max
+                    x_pr = x.copy()
+                    P_pr = P.copy()
                     nis_k, dof_k = _update(
                         x, P, k, N, p_L[b], cov_L[b], usable[b], q_meas[b], R0[b, k], use_att,
-                        R_LI[b], f_first, fej,
+                        R_LI[b], f_first, fej, x_pr,
                     )  # fmt: skip
+                    for _ in range(its):
+                        x_it = x.copy()
+                        x[:] = x_pr
+                        P[:, :] = P_pr
+                        nis_k, dof_k = _update(
+                            x, P, k, N, p_L[b], cov_L[b], usable[b], q_meas[b], R0[b, k],
+                            use_att, R_LI[b], f_first, fej, x_it,
+                        )  # fmt: skip
                 if start or k % constrain_every == 0:
                     _constrain(x, P, curvature)
                 if _diverged(x, P, N, max_rate):  # a run that blew up is stopped and counted
