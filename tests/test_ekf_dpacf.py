@@ -545,7 +545,7 @@ def test_frame_measurement_and_its_jacobian():
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 4, 8 and 14 of these seeds
+        # ekf-baseline with the curvature term diverges in runs 2, 11 and 12 of these seeds
         # (chaotic: re-chosen whenever the front end or the start changes; the start gate
         # pinned at its former default)
         (
@@ -553,7 +553,7 @@ def test_frame_measurement_and_its_jacobian():
             {"constraint_curvature": True, "max_ratio_sigma": 0.03},
             1e-6,
             200.0,
-            [4, 8, 14, 9],
+            [2, 11, 12, 9],
             "diverge",
         ),
         # at 5e-5 rad, asking for a DPACF frame within 0.005 rad, run 6 starts at 41 s and
@@ -1017,3 +1017,53 @@ def test_iterated_update_after_a_long_occlusion():
     for engine in ("compiled", "numpy"):
         assert position_nees(engine) < 3.0
         assert position_nees(engine, iterate_max=0) > 50.0
+
+
+def test_iterated_update_is_second_order_in_the_linearisation_point():
+    """With measurements that the prior predicts exactly (zero innovation), the update
+    linearised at x_lin = prior [+] delta (innovation z - h(x_lin) + H delta) moves the
+    state by O(|delta|^2), for the DPACF attitude (eq. 31) and for the DPACF frame
+    measurement alike (a missing + H delta leaves an O(|delta|) shift)."""
+    import dataclasses
+
+    from tumblenav import rotations as rot
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.scenario import load_scenario
+    from tumblenav.simulation import simulate
+
+    rng = np.random.default_rng(3)
+    tuning = {"max_ratio_sigma": 0.03}  # started by 30 s
+    s = load_scenario("hu2024").with_updates(
+        duration_s=40.0, steady_state_window_s=[30.0, 40.0], **{"estimator.tuning": tuning}
+    )
+    meas = simulate(s, run_seed(5, 0))[1]
+    res = hu.run_filter(s, [meas], True, keep_history=True, engine="numpy")
+    tun = hu.parse_tuning(tuning)
+    fe = hu.filter_view(hu.frontend([meas], tun), tun.max_dpacf_sigma_rad)
+    k = len(res["t"]) - 5
+    x, P = res["x"][:, k].copy(), res["P"][:, k].copy()
+    lay = hu.layout(fe.usable.shape[2])
+    N = fe.usable.shape[2]
+    # measurements equal to the prior's predictions at epoch k
+    f = x[:, lay.nom("features")].reshape(1, N, 3)
+    R_LT = fe.R_LI[:, k] @ np.swapaxes(rot.quat_to_matrix(x[:, lay.nom("attitude")]), -1, -2)
+    p_L = fe.p_L.copy()
+    p_L[:, k] = x[:, None, lay.nom("position")] + f @ np.swapaxes(R_LT, -1, -2)
+    q_TI = fe.q_TI.copy()
+    q_TI[:, k] = x[:, lay.nom("attitude")]
+    R_GT = fe.R_GT.copy()
+    R_hat = hu.frame_measurement(f, fe.template_at(k), fe.known_at[:, k])[0]
+    R_GT[:, k] = np.swapaxes(R_hat, -1, -2)
+    fe0 = dataclasses.replace(fe, p_L=p_L, q_TI=q_TI, R_GT=R_GT)
+    fe0.R_LI = fe.R_LI
+    active = np.ones(1, dtype=bool)
+    d = rng.normal(size=(1, lay.dim))
+    for use_att in (True, "frame"):
+        base = hu._update_sequential(x, P, fe0, k, lay, use_att, 1.0, active)[0]
+        assert np.linalg.norm(lay.boxminus(base, x)) < 1e-9  # zero innovation: no move
+        shift = []
+        for eps in (1e-3, 1e-4):
+            x_lin = lay.boxplus(x, eps * d / np.linalg.norm(d))
+            it = hu._update_sequential(x, P, fe0, k, lay, use_att, 1.0, active, x_lin=x_lin)[0]
+            shift.append(np.linalg.norm(lay.boxminus(it, base)))
+        assert shift[1] < shift[0] / 30.0, (use_att, shift)  # quadratic: 100x

@@ -949,6 +949,9 @@ def test_refined_template_steadies_g_and_is_causal():
         close(fe[0.0].cov_ratios[b, :k_ref], fe[30.0].cov_ratios[b, :k_ref])
         close(fe[0.0].q_TI[b, :k_ref], fe[30.0].q_TI[b, :k_ref])
         assert not np.array_equal(fe[0.0].R_GT[b, k_ref:], fe[30.0].R_GT[b, k_ref:])
+        # the template as known at each epoch: the first one before k_ref
+        same(fe[30.0].template_at(k_ref - 1)[b], fe[0.0].template_G[b])
+        same(fe[30.0].template_at(k_ref)[b], fe[30.0].template_G[b])
         spread = []
         for f in fe.values():
             kn = f.known[b]

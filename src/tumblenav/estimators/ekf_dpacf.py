@@ -393,7 +393,7 @@ def mass_centre_from_rotation(
     if use.sum() < 12:
         return None
     R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
-    g = np.nan_to_num(fe.template_G[b])  # (N,3)
+    g = np.nan_to_num(fe.template_at(k)[b])  # (N,3), as known at k
     Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
     jj, ii = np.nonzero(use)
     d = fe.p_L[b, j[jj], ii] - (R_LG[jj] @ g[ii][..., None])[..., 0]  # (M,3)
@@ -454,15 +454,16 @@ def features_from_rotation(
     j = have[t[have] <= t[have[0]] + window_s]
     R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
     Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
-    g = fe.template_G[b]
+    g = fe.template_at(k)[b]  # as known at k (the initial lever arms)
+    kn = fe.known_at[b, k]
     out = stereo_points.joint_features(
         Phi,
         R_LG,
         fe.p_L[b, j],
         fe.cov_L[b, j],
         fe.cov_G[b, j],
-        fe.usable[b, j] & fe.known_at[b, k][None, :],
-        g - np.nanmean(g, axis=0),
+        fe.usable[b, j] & kn[None, :],
+        g - np.nanmean(g[kn], axis=0),
     )
     if out is None:
         return None
@@ -587,7 +588,7 @@ def _initial_state(
         R_LT = _R_LI_at(fe, b, k) @ rot.quat_to_matrix(q).T
         u = fe.usable[b, k]
         kn = fe.known_at[b, k]  # catalogued by the start (causal)
-        g = fe.template_G[b]
+        g = fe.template_at(k)[b]  # as known at the start
         gbar = np.nanmean(g[kn], axis=0)  # mass centre guess: the feature centroid
         Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
         joint = None  # (f_G, cov_f, fitted) of features_from_rotation
@@ -1455,9 +1456,11 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active, f_lin=N
     if use_att == "frame":  # DPACF frame R_TG against the filter's own features
         use = fe.known_at[:, k] & active[:, None]
         ok0 = np.all(np.isfinite(fe.R_GT[:, k]), axis=(-1, -2)) & (use.sum(1) >= 3) & active
-        R_hat, J = frame_measurement(f, fe.template_G, use, jac=True)
+        R_hat, J = frame_measurement(f, fe.template_at(k), use, jac=True)
         R_meas = np.swapaxes(np.where(ok0[:, None, None], fe.R_GT[:, k], np.eye(3)), -1, -2)
         nu0 = rot.log_map(R_meas @ np.swapaxes(R_hat, -1, -2))
+        if x_lin is not None:  # + H delta (R_hat and J at x_lin's features)
+            nu0 = nu0 + np.einsum("bnij,bnj->bi", J, dlf)
         HP = np.zeros((B, 3, lay.dim))
         Hdx = np.zeros((B, 3))
         for i in range(N):
