@@ -362,6 +362,23 @@ def feature_measurement(
 # --- the filter -------------------------------------------------------------------------
 
 
+def _rotation_window(
+    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float
+) -> tuple[NDArray[np.int64], Array, Array] | None:
+    """The start batches' data window: the epochs ``j`` of the first ``window_s`` of G
+    attitudes up to epoch k (causal), R_LG there (m,3,3) and the Hill (CW) position rows
+    ``Phi`` (m,3,6) of the mass centre's ``[r_0, v_0]``; None with fewer than 10 epochs."""
+    from tumblenav.dynamics.relative_orbit import cw_stm
+
+    t = fe.t
+    have = np.flatnonzero(np.all(np.isfinite(fe.R_GI[b, : k + 1]), axis=(-1, -2)))
+    if len(have) < 10:
+        return None
+    j = have[t[have] <= t[have[0]] + window_s]
+    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)
+    return j, R_LG, cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]
+
+
 def mass_centre_from_rotation(
     fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
 ) -> tuple[Array, Array] | None:
@@ -382,19 +399,14 @@ def mass_centre_from_rotation(
     Returns ``(c_G, cov_c_G)``, or None when the window holds too little rotation to tell
     ``c_G`` (its 1-sigma above 0.5 m).
     """
-    from tumblenav.dynamics.relative_orbit import cw_stm
-
-    t = fe.t
-    have = np.flatnonzero(np.all(np.isfinite(fe.R_GI[b, : k + 1]), axis=(-1, -2)))
-    if len(have) < 10:
+    window = _rotation_window(fe, b, k, n_orbit, window_s)
+    if window is None:
         return None
-    j = have[t[have] <= t[have[0]] + window_s]
+    j, R_LG, Phi = window
     use = fe.usable[b, j] & fe.known_at[b, k][None, :]
     if use.sum() < 12:
         return None
-    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
     g = np.nan_to_num(fe.template_at(k)[b])  # (N,3), as known at k
-    Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
     jj, ii = np.nonzero(use)
     d = fe.p_L[b, j[jj], ii] - (R_LG[jj] @ g[ii][..., None])[..., 0]  # (M,3)
     A = np.concatenate([Phi[jj], -R_LG[jj]], axis=2)  # (M,3,9)
@@ -444,16 +456,11 @@ def features_from_rotation(
     the mass centre is not determined (the 1-sigma of the features' common shift above
     0.5 m: too little rotation in the window) or too few points.
     """
-    from tumblenav.dynamics.relative_orbit import cw_stm
-
-    t = fe.t
     N = fe.usable.shape[2]
-    have = np.flatnonzero(np.all(np.isfinite(fe.R_GI[b, : k + 1]), axis=(-1, -2)))
-    if len(have) < 10:
+    window = _rotation_window(fe, b, k, n_orbit, window_s)
+    if window is None:
         return None
-    j = have[t[have] <= t[have[0]] + window_s]
-    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)  # (m,3,3)
-    Phi = cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]  # (m,3,6) position rows
+    j, R_LG, Phi = window
     g = fe.template_at(k)[b]  # as known at k (the initial lever arms)
     kn = fe.known_at[b, k]
     out = stereo_points.joint_features(

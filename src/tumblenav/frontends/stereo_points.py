@@ -245,8 +245,9 @@ def photogrammetric_frames(
     the mask of features catalogued by each epoch (B,n,N). With ``stop_after`` > 0 the
     attitudes are computed for the first ``stop_after`` epochs from G's definition only,
     rounded up to a multiple of ``stop_every`` (NaN after; see ``process``, the template's
-    refinement). ``info``, if given, receives
-    ``cov_template`` (B,N,3,3), the template's covariance in G."""
+    refinement). ``info``, if given, receives ``cov_template`` (B,N,3,3), the template's
+    covariance in G, and with ``stop_after``: ``first`` (B,), G's first epoch (n where
+    none), and ``stop`` (B,), the first epoch without an attitude."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
     # covariance of the template coordinates (in G): the point's at its first sighting,
@@ -308,6 +309,8 @@ def photogrammetric_frames(
         first = np.where(known_at.any(axis=2).any(axis=1), np.argmax(known_at.any(axis=2), 1), n)
         stop = -(-(first + stop_after) // stop_every) * stop_every
         use &= (np.arange(n)[None, :] < stop[:, None])[..., None]
+        if info is not None:
+            info["first"], info["stop"] = first, stop
     if info is not None:
         info["cov_template"] = cov_tmpl
     w = np.where(use, w_all, 0.0).reshape(B * n, N)
@@ -408,7 +411,6 @@ def rates_and_covariance(
     dt: float,
     h: int,
     bias_epochs: int = 100,
-    exclude: NDArray[np.bool_] | None = None,
 ) -> tuple[Array, Array, Array]:
     """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
 
@@ -436,14 +438,11 @@ def rates_and_covariance(
     ``phi_j`` is taken relative to ``R_GI(k)``, whose error ``psi`` enters turned by
     ``j dt omega``, which leaves ``-[omega x] psi`` in the slope (``[omega x] cov_G [omega
     x]^T``; a fifth of the line's variance for this tumble). NaN unless all ``2h + 1``
-    epochs have a G attitude, and at the epochs in ``exclude`` (B,n)."""
+    epochs have a G attitude."""
     q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
     om_l, om_c = _points_kernel.rate_fit(q, valid, h, dt)
-    if exclude is not None:  # epochs whose rate is not wanted (NaN, out of the bias mean)
-        om_l[exclude] = np.nan
-        om_c[exclude] = np.nan
     good = np.all(np.isfinite(om_l), axis=-1) & np.all(np.isfinite(cov_G), axis=(-1, -2))
     fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
     C = np.where(good[..., None, None], cov_G, 0.0) / dt**2
@@ -666,11 +665,12 @@ def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
 
 
 def _refine_template(
-    t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl, R_GI, cov_G,
-    R_CL, R_LI, every,
+    t, first, k_ref, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl, R_GI,
+    cov_G, R_CL, R_LI,
 ):  # fmt: skip
-    """The template refined over the first ``n_ref`` epochs of G, and G from then on with it
-    (beyond Hu 2024, whose G comes from three points of one sighting).
+    """The template refined over the epochs ``first .. k_ref - 1`` of G (``first`` (B,), G's
+    first epoch; ``k_ref`` (B,), where photogrammetric_frames stopped), and G from then on
+    with it (beyond Hu 2024, whose G comes from three points of one sighting).
 
     The template (each feature's G coordinates at its first sighting: one stereo point,
     8 mm deep at 17 m and 2e-5 rad) has errors fixed in G that the G attitude fit turns
@@ -696,9 +696,6 @@ def _refine_template(
     refined); None if no run is."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
-    has = known_at.any(axis=2)
-    first = np.where(has.any(axis=1), np.argmax(has, axis=1), n)
-    k_ref = -(-(first + n_ref) // every) * every  # at a least-squares solution
     new_t = template.copy()
     new_c = cov_tmpl.copy()
     for b in np.flatnonzero(k_ref < n):
@@ -791,8 +788,8 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     ref = None
     if n_ref > 0:
         ref = _refine_template(
-            t, n_ref, h, p_C, cov_C, p_L, cov_L, usable, known_at, template,
-            info["cov_template"], R_GI, cov_G, R_CL, R_LI, s.ls_every,
+            t, info["first"], info["stop"], p_C, cov_C, p_L, cov_L, usable, known_at,
+            template, info["cov_template"], R_GI, cov_G, R_CL, R_LI,
         )  # fmt: skip
     # the rates as available at each epoch (omega_G, cov_w) and the least squares' rows
     before = None
