@@ -909,7 +909,7 @@ def test_features_from_rotation_refines_features_and_mass_centre():
     batch's (mass_centre_from_rotation; medians 0.14 and 5.4 mm measured), both compared
     after the rotation that best aligns each shape with the true features (it moves no
     centre); the features' shape consistent with its
-    covariance (NEES/dof between 0.2 and 2 over the runs; 0.54 measured over 100); causal;
+    covariance (NEES/dof between 0.2 and 2 over the runs); causal;
     declines with too little data."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
@@ -987,10 +987,10 @@ def test_dpacf_emission_threshold_does_not_change_the_filter():
 
 def test_iterated_update_after_a_long_occlusion():
     """Four features, 20 s of occlusion (60-80 s): the attitude is 35 deg uncertain when
-    they come back. Linearised at the prior, the first update put the position 50 mm off
-    with an 8-17 mm 1-sigma (position NEES/dof 385 over 80.5-100 s, measured); iterated
-    (relinearised at its posterior, ``iterate_sigma_rad``), it stays consistent (0.47
-    measured). Both engines alike."""
+    they come back. Linearised at the prior, the first update put the position 40 mm off
+    with an 8-13 mm 1-sigma (position NEES, summed over its 3 dof, 204 over 80.5-100 s);
+    iterated (relinearised at its posterior, ``iterate_sigma_rad``), it stays consistent
+    (0.28; `python benchmarks/hu2024_refinement_checks.py occlusion`). Both engines alike."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate

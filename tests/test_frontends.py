@@ -914,8 +914,8 @@ def test_refined_template_steadies_g_and_is_causal():
     """The template refitted to all views of its first 30 s (stereo_points._refine_template):
     at a constant 17 m, 2e-5 rad, the G attitude's error about its mean (the G frame's
     offset, which the principal frame absorbs) after the refinement is several times smaller
-    than with the one-sighting template (0.11-0.18 deg -> 0.016-0.029 deg measured over 8
-    runs); before it, G attitudes, the rates they fully determine and the least squares'
+    than with the one-sighting template (0.11-0.18 deg -> 0.013-0.023 deg over 8 runs,
+    `python benchmarks/hu2024_refinement_checks.py template`); before it, G attitudes, the rates they fully determine and the least squares'
     solutions are unchanged (causal)."""
     from tumblenav import rotations as rot
     from tumblenav.campaign.store import run_seed

@@ -172,8 +172,9 @@ class HuTuning(BaseModel):
         "(mass_centre_init 'rotation': its least-squares covariance misses the template "
         "and G-attitude errors; measured errors per axis 3-14 mm rms, "
         "benchmarks/hu2024_mass_centre.py) and, with 'joint', to the features' common "
-        "shift (the joint fit takes the G-attitude errors as white: mass centre NEES/dof "
-        "5.5 in a slow tumble, 0.07 rad/s)",
+        "shift (the joint fit takes the G-attitude errors as white: median NEES/dof of the "
+        "common shift 1.85 in a slow tumble, 0.07 rad/s, benchmarks/hu2024_mass_centre.py "
+        "--scenario docs/results/scenarios/generalisation/g_slowrecede.yaml)",
     )
     dpacf_frame_error: Literal["consider", "white"] | None = Field(
         None,
@@ -445,8 +446,8 @@ def features_from_rotation(
     one sighting: ``p_L,i(j) = Phi_CW(t_j - t_0) [r_0; v_0] + R_LG(j) f_i``, linear in
     ``[r_0, v_0, f_1 .. f_N]``. With the template fixed, its errors (those of one stereo
     sighting: 8 mm deep at 17 m, 2e-5 rad) could only be absorbed by ``c_G`` and the fit put
-    the mass centre 10-30 mm off with a 1-sigma below 1 mm (hu2024), 0.2 m off in a slower
-    tumble; here every feature is fitted to all its views in the window, so the template's
+    the mass centre 6 mm off (median) with a 1-sigma below 1 mm (hu2024), 97 mm off in a
+    slower tumble (benchmarks/hu2024_mass_centre.py); here every feature is fitted to all its views in the window, so the template's
     errors do not enter, and the features come out refined over the views (their depth error
     averaged over the tumble) with an honest joint covariance.
 
