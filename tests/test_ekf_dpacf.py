@@ -539,21 +539,24 @@ def test_frame_measurement_and_its_jacobian():
     "use_dpacf, tuning, noise, duration, runs, expect",
     [
         (True, {}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline: runs that start and do not diverge (chaotic: run 3 diverged in one
-        # engine only after the seventh session's template refinement, so runs 4, 5, 8)
-        (False, {}, 2e-5, 90.0, [4, 5, 8], "start"),
+        # ekf-baseline: runs that start and do not diverge (chaotic: re-chosen whenever the
+        # front end changes; after the eighth session's refinement schedule runs 5 and 7
+        # diverge, so runs 3, 8, 11, which both engines agree on to 0.03-0.2 of the strict
+        # tolerance, scanned over runs 0-11)
+        (False, {}, 2e-5, 90.0, [3, 8, 11], "start"),
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
-        # ekf-baseline with the curvature term diverges in runs 2, 11 and 12 of these seeds
-        # (chaotic: re-chosen whenever the front end or the start changes; the start gate
-        # pinned at its former default)
+        # ekf-baseline with the curvature term diverges in runs 1, 6 and 13 of these seeds,
+        # not in run 9 (chaotic: re-chosen whenever the front end or the start changes; the
+        # start gate pinned at its former default; of runs 0-15 after the eighth session,
+        # runs 0, 3, 7, 8 and 15 differ between the engines beyond this test's tolerance)
         (
             False,
             {"constraint_curvature": True, "max_ratio_sigma": 0.03},
             1e-6,
             200.0,
-            [2, 11, 12, 9],
+            [1, 6, 13, 9],
             "diverge",
         ),
         # at 5e-5 rad, asking for a DPACF frame within 0.005 rad, run 6 starts at 41 s and
@@ -835,12 +838,12 @@ def test_refine_start_pose_recovers_the_pose_with_an_honest_covariance():
 
 
 def test_start_waits_for_the_ratios_but_not_forever():
-    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 18 s
-    (17.5 s before the full-covariance G fit, when the least-squares ratios were 0.27 off
-    with 1-sigma 0.1, docs/results/hu2024.md; the default gate of 0.03 no longer delays
-    this run). Asking for ratios within 0.005, the filter waits for them (34 s), and never
-    longer than ``max_ratio_wait_s`` after the frame was ready; both estimators start
-    together."""
+    """Run 112 of the hu2024 campaign at 2e-5 rad: the DPACF frame is good enough at 12 s
+    (18 s with the template refined at 30 s only, until the eighth session; 17.5 s before
+    the full-covariance G fit, when the least-squares ratios were 0.27 off with 1-sigma
+    0.1, docs/results/hu2024.md). Asking for ratios within 0.005, the filter waits for them
+    (21 s), and never longer than ``max_ratio_wait_s`` after the frame was ready; both
+    estimators start together."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
@@ -857,7 +860,7 @@ def test_start_waits_for_the_ratios_but_not_forever():
 
     free = start(max_ratio_sigma=None)
     gated = start(max_ratio_sigma=0.005)
-    assert 15.0 < free < 20.0 and gated > free + 5.0
+    assert 10.0 < free < 15.0 and gated > free + 5.0
     assert start(False, max_ratio_sigma=0.005) == gated  # ekf-baseline starts then too
     assert free < start(max_ratio_sigma=0.005, max_ratio_wait_s=1.0) <= free + 1.0 + 1e-9
 

@@ -38,7 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy import stats
 
 from tumblenav import rotations as rot
@@ -156,15 +156,24 @@ class HuTuning(BaseModel):
         "degrees uncertain). Not with gate_probability",
     )
     iterate_max: int = Field(2, ge=0, description="the iterated update's extra iterations")
-    template_refine_s: float = Field(
-        30.0,
-        ge=0,
+    template_refine_s: float | list[float] = Field(
+        [8.0, 10.0, 30.0],
         description="the front end refits its template (the features' G coordinates, from "
         "their first sighting) to all their views over this many seconds after G's "
         "definition, and computes G with it from then on (beyond the paper, "
-        "stereo_points._refine_template); 0: never (as until the seventh session). Both "
-        "estimators share the front end, so that they start on the same data",
+        "stereo_points._refine_template); a list: a refinement at each (the early one "
+        "brings the DPACF in within 10 s, the later one makes it precise); 0 or []: never "
+        "(as until the seventh session). Both estimators share the front end, so that they "
+        "start on the same data",
     )
+
+    @field_validator("template_refine_s")
+    @classmethod
+    def _refine_times(cls, v: float | list[float]) -> float | list[float]:
+        if any(x < 0 or not np.isfinite(x) for x in np.atleast_1d(np.asarray(v, dtype=float))):
+            raise ValueError("template_refine_s: times must be finite and >= 0 s")
+        return v
+
     p0_mass_centre_floor_m: float = Field(
         0.015,
         ge=0,
@@ -1539,7 +1548,7 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
             min_ls_epochs=tun.min_ls_epochs,
             max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
             g_fit=tun.g_attitude_fit,
-            template_refine_s=tun.template_refine_s,
+            template_refine_s=tuple(np.atleast_1d(np.asarray(tun.template_refine_s, float))),
         ),
     )
     fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

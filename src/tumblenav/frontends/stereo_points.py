@@ -51,7 +51,9 @@ class FrontEndSettings:
     max_dpacf_sigma_rad: float = 0.05  # the DPACF frame is used once its 1-sigma error is below
     ls_every: int = 10  # epochs between least-squares solutions
     g_fit: str = "full"  # G attitude: "full" (points' covariances) or "kabsch" (isotropic)
-    template_refine_s: float = 0.0  # refit the template over this much data (0: never)
+    # refit the template over this much data after G's definition (seconds; one value or
+    # several, each a refinement; 0 or empty: never)
+    template_refine_s: float | tuple[float, ...] = 0.0
 
 
 @dataclass
@@ -75,19 +77,31 @@ class PointsFrontEnd:
     cov_ratios: Array  # (B,n,3,3) covariance of the inertia ratios p (Hu 2024 eq. 19)
     skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
     cov_omega: Array | None = None  # (B,n,3,3) rad^2/s^2, full covariance of omega_G
-    # the template's refinement (template_refine_s): the first template (B,N,3) and the
-    # epoch (B,) from which template_G holds (n where never); None: never refined
-    template_first: Array | None = None
-    template_from: NDArray[np.int64] | None = None
+    # the template's refinements (template_refine_s): (from epoch (B,), template (B,N,3))
+    # for each version in order, the first from epoch 0, the last being template_G (a
+    # refinement's epoch is n in runs where it did not happen); None: never refined
+    template_history: list[tuple[NDArray[np.int64], Array]] | None = None
+
+    @property
+    def template_first(self) -> Array:
+        """The template of the features' first sightings (B,N,3)."""
+        return self.template_G if self.template_history is None else self.template_history[0][1]
+
+    @property
+    def template_from(self) -> NDArray[np.int64] | None:
+        """The epoch (B,) of the first refinement (n where none); None: never refined."""
+        return None if self.template_history is None else self.template_history[1][0]
 
     def template_at(self, k: int | NDArray[np.int64]) -> Array:
-        """The template (B,N,3) as known at epoch ``k`` (scalar or per run): the first
-        one before the refinement, template_G from it (causal use of the template)."""
-        if self.template_first is None or self.template_from is None:
+        """The template (B,N,3) as known at epoch ``k`` (scalar or per run): the latest
+        version refined at or before ``k`` (causal use of the template)."""
+        if self.template_history is None:
             return self.template_G
-        before = np.asarray(k) < self.template_from
-        return np.where(np.broadcast_to(before, self.template_from.shape)[:, None, None],
-                        self.template_first, self.template_G)  # fmt: skip
+        out = self.template_history[0][1]
+        for k_v, tmpl in self.template_history[1:]:
+            now = np.broadcast_to(np.asarray(k) >= k_v, k_v.shape)
+            out = np.where(now[:, None, None], tmpl, out)
+        return out
 
 
 def triangulate(meas_list) -> tuple[Array, Array, NDArray[np.bool_], dict[str, Array]]:
@@ -411,6 +425,7 @@ def rates_and_covariance(
     dt: float,
     h: int,
     bias_epochs: int = 100,
+    unbiased: bool | NDArray[np.bool_] = False,
 ) -> tuple[Array, Array, Array]:
     """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
 
@@ -459,6 +474,9 @@ def rates_and_covariance(
     cubic = (np.sum(b2, -1) > (fc - fl) * np.trace(C, axis1=-2, axis2=-1)) & np.all(
         np.isfinite(om_c), -1
     )
+    # per run (B,): the cubic fit wherever it exists
+    unb = np.broadcast_to(np.asarray(unbiased, dtype=bool), good.shape[:1])[:, None]
+    cubic = np.where(unb, np.all(np.isfinite(om_c), -1), cubic)
     omega = np.where(cubic[..., None], om_c, om_l)
     eye = np.eye(3)
     with np.errstate(invalid="ignore"):  # fc = inf for h = 1, where the cubic fit is not used
@@ -519,16 +537,17 @@ def identify_and_dpacf(
     delay: int = 0,
     cov_w: Array | None = None,
     R_GI_report: Array | None = None,
-    before: tuple | None = None,
+    before: list[tuple] | None = None,
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
     covariance of the inertia ratios (eq. 19). With the covariances of the rates' fit noise
     ``cov_w`` (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
     ``1 / var_w``. ``R_GI_report``: the G attitudes of the attitude measurement, if not
-    ``R_GI``. ``before = (omega, var_w, R_GI, cov_w, k_ref)``: the solutions at epochs before
-    ``k_ref`` (B,) use these rows instead (the template's refinement: the rows as they were
-    before it)."""
+    ``R_GI``. ``before``: a list of ``(omega, var_w, R_GI, cov_w, k_from, k_to)``, the rows of
+    the first epochs (as many as given) as they were between two of the template's
+    refinements: the solutions at epochs ``k_from <= k < k_to`` ((B,) each) use these rows
+    instead of the main ones."""
     B, n = omega_G.shape[:2]
     a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
     # The identification is re-solved every `ls_every` epochs and held in between (the
@@ -539,22 +558,22 @@ def identify_and_dpacf(
     # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
     # k may only use the least-squares sums up to k - h (compiled loop).
     N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
-    if before is not None:
-        # solutions before k_ref: the sums of the rows as they were
-        om_o, var_o, R_o, cw_o, k_ref = before
-        m = min(int(k_ref.max()), n)
+    for om_o, var_o, R_o, cw_o, k_from, k_to in before or []:
+        # the solutions between two refinements: the sums of the rows as they were then
+        m = min(int(k_to.max()), n)
         early = sel < m
-        if early.any():
-            ao, bo, wo, oko = _ls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
-                                       None if cw_o is None else cw_o[:, :m])  # fmt: skip
-            se = sel[early]
-            # the sums of a solution before k_ref cover epochs up to k_ref - h - 1 < m only
-            No, ro, bbo, co = _points_kernel.normal_equations_at(ao, bo, wo, oko, delay, se)
-            use = se[None, :] < k_ref[:, None]  # (B, S_early)
-            N[:, early] = np.where(use[..., None, None], No, N[:, early])
-            r[:, early] = np.where(use[..., None], ro, r[:, early])
-            bb[:, early] = np.where(use, bbo, bb[:, early])
-            cnt[:, early] = np.where(use, co, cnt[:, early])
+        if not early.any():
+            continue
+        ao, bo, wo, oko = _ls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
+                                   None if cw_o is None else cw_o[:, :m])  # fmt: skip
+        se = sel[early]
+        # the sums of a solution before k_to cover epochs up to k_to - h - 1 < m only
+        No, ro, bbo, co = _points_kernel.normal_equations_at(ao, bo, wo, oko, delay, se)
+        use = (se[None, :] >= k_from[:, None]) & (se[None, :] < k_to[:, None])  # (B, S_early)
+        N[:, early] = np.where(use[..., None, None], No, N[:, early])
+        r[:, early] = np.where(use[..., None], ro, r[:, early])
+        bb[:, early] = np.where(use, bbo, bb[:, early])
+        cnt[:, early] = np.where(use, co, cnt[:, early])
     return _solve_and_dpacf(N, r, bb, cnt, sel, held, s,
                             R_GI if R_GI_report is None else R_GI_report, cov_G)  # fmt: skip
 
@@ -665,35 +684,34 @@ def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
 
 
 def _refine_template(
-    t, first, k_ref, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl, R_GI,
-    cov_G, R_CL, R_LI,
+    t, first, k_ref, upto, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl,
+    R_GI, cov_G, R_CL, R_LI,
 ):  # fmt: skip
-    """The template refined over the epochs ``first .. k_ref - 1`` of G (``first`` (B,), G's
-    first epoch; ``k_ref`` (B,), where photogrammetric_frames stopped), and G from then on
-    with it (beyond Hu 2024, whose G comes from three points of one sighting).
+    """One refinement of the template: refitted over the epochs ``first .. k_ref - 1`` of G
+    (``first`` (B,), G's first epoch; ``k_ref`` (B,), the refinement's epoch, n where
+    none), and G with it at the epochs ``0 .. upto - 1`` (beyond Hu 2024, whose G comes
+    from three points of one sighting).
 
     The template (each feature's G coordinates at its first sighting: one stereo point,
     8 mm deep at 17 m and 2e-5 rad) has errors fixed in G that the G attitude fit turns
     into view-dependent attitude errors, which do not average out in the rates. At epoch
-    ``k_ref = first + n_ref`` (rounded up to a least-squares solution) the features are
-    refitted jointly to all their views so far
+    ``k_ref`` the features are refitted jointly to all their views so far
     (``joint_features``, with a quadratic translation in L, which is the Hill motion to
-    0.1 mm over 30 s), in the axes of the G attitudes measured so far, so that G keeps its
-    orientation; the other features' coordinates shift with the fitted ones' mean. Causal:
-    G attitudes are reported with the first template before ``k_ref`` and with the refined
-    one from it; the rates of epochs from ``k_ref - h`` on (each available at its epoch + h
-    >= k_ref) come from the refined attitudes; and the least squares, a batch re-solved at
-    each solution, uses from ``k_ref`` on the rows of every epoch recomputed with the refined
-    template (past data reprocessed at k_ref), before it the rows as they were.
+    0.1 mm over 30 s), in the axes of the G attitudes ``R_GI`` measured so far (with the
+    template ``template``, the previous version), so that G keeps its orientation; the
+    other features' coordinates shift with the fitted ones' mean. How ``process`` uses it
+    causally: G attitudes are reported with a version from its ``k_ref`` on; the rates of
+    epochs from ``k_ref - h`` on (each available at its epoch + h >= k_ref) come from its
+    attitudes; and the least squares, a batch re-solved at each solution, uses from
+    ``k_ref`` on the rows of every epoch recomputed with it (past data reprocessed at
+    ``k_ref``), before it the rows as they were.
 
     Tried and not kept: keeping the first G's orientation across the switch (the refined
     template rotated by the mean rotation between the two G over ``k_ref - 2h .. k_ref``):
     median attitude 0.094 -> 0.102 deg over 500 runs at 2e-5 rad, no change at 1e-6 rad.
 
-    Returns the G attitude and covariance (B,n,...) as reported at each epoch (the first
-    template's before ``k_ref``, the refined one's from it), the final template, the
-    refined G attitudes and covariances of every epoch and ``k_ref`` (B,) (n where not
-    refined); None if no run is."""
+    Returns the refined template (B,N,3) (the previous one where the fit failed) and its
+    covariance, and G's attitude and covariance (B,upto,...) with it."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     new_t = template.copy()
@@ -726,29 +744,33 @@ def _refine_template(
         cov_s = Pm @ cov_f @ Pm.T
         for m, i in enumerate(idx):
             new_c[b, i] = cov_s[3 * m : 3 * m + 3, 3 * m : 3 * m + 3]
-    # G at every epoch with the refined template (the first one where the fit failed), from
-    # which the epochs from k_ref on are reported (photogrammetric_frames stopped at k_ref)
-    redo = k_ref < n
-    if not redo.any():
-        return None
-    k_ref = np.where(redo, k_ref, n)
-    use = usable & known_at & redo[:, None, None]
-    w = np.where(use, 1.0 / np.maximum(np.trace(cov_C, axis1=-2, axis2=-1), 1e-30), 0.0)
+    m = upto
+    use = usable[:, :m] & known_at[:, :m] & (k_ref < n)[:, None, None]
+    w = np.where(use, 1.0 / np.maximum(np.trace(cov_C[:, :m], axis1=-2, axis2=-1), 1e-30), 0.0)
     R2, _, c2, ok2 = weighted_kabsch(
-        p_C.reshape(B * n, N, 3),
-        np.broadcast_to(new_t[:, None], (B, n, N, 3)).reshape(B * n, N, 3),
-        w.reshape(B * n, N),
-        cov_C.reshape(B * n, N, 3, 3),
+        p_C[:, :m].reshape(B * m, N, 3),
+        np.broadcast_to(new_t[:, None], (B, m, N, 3)).reshape(B * m, N, 3),
+        w.reshape(B * m, N),
+        cov_C[:, :m].reshape(B * m, N, 3, 3),
         np.trace(new_c, axis1=-2, axis2=-1)[..., None, None] * np.eye(3),  # as in pass 2
-        run_len=n,
+        run_len=m,
     )
-    ok2 = ok2.reshape(B, n)
-    R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, n, 3, 3), np.nan) @ R_CL @ R_LI
-    cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, n, 3, 3), np.nan)
-    after = (np.arange(n)[None, :] >= k_ref[:, None])[..., None, None]
-    R_GI_out = np.where(after, R_GI2, R_GI)
-    cov_G_out = np.where(after, cov_G2, cov_G)
-    return R_GI_out, cov_G_out, new_t, R_GI2, cov_G2, k_ref
+    ok2 = ok2.reshape(B, m)
+    R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, m, 3, 3), np.nan) @ (
+        R_CL[:, :m] @ R_LI[:, :m]
+    )
+    cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, m, 3, 3), np.nan)
+    return new_t, new_c, R_GI2, cov_G2
+
+
+def _refine_epochs(first: NDArray[np.int64], s: FrontEndSettings, dt: float, n: int):
+    """The epochs (V, B) of the template's refinements (``template_refine_s`` after G's
+    first epoch ``first`` (B,), each rounded up to a least-squares solution; n where it
+    would be at or after the end, or G is never defined)."""
+    secs = np.atleast_1d(np.asarray(s.template_refine_s, dtype=float))
+    steps = sorted({int(round(x / dt)) for x in secs if x > 0})
+    ks = [np.minimum(-(-(first + m) // s.ls_every) * s.ls_every, n) for m in steps]
+    return [np.where(first < n, k, n) for k in ks]
 
 
 def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontEnd:
@@ -778,41 +800,61 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         p_L = (R_LC[:, :, None] @ p_C[..., None])[..., 0]
         cov_L = R_LC[:, :, None] @ cov_C @ np.swapaxes(R_LC, -1, -2)[:, :, None]
     h = s.rate_half_window
-    n_ref = int(round(s.template_refine_s / dt)) if s.g_fit == "full" else 0
+    n = len(t)
+    full = s.g_fit == "full"
+    steps = np.atleast_1d(np.asarray(s.template_refine_s, dtype=float)) if full else []
+    n_first = int(round(min([x for x in steps if x > 0], default=0.0) / dt))
     info: dict = {}
     R_GC, cov_G, template, known, known_at = photogrammetric_frames(
-        p_C, cov_C, usable, full_cov=s.g_fit == "full", stop_after=n_ref, info=info,
+        p_C, cov_C, usable, full_cov=full, stop_after=n_first, info=info,
         stop_every=s.ls_every,
     )  # fmt: skip
+    # Versions of the template (the first sightings', then each refinement's) and of what
+    # follows from it: G at the epochs it is needed for (up to the next refinement), the
+    # rates and the least squares' rows; each version is reported from its refinement on
+    ks = _refine_epochs(info["first"], s, dt, n) if n_first > 0 else []
+    ks = [k for k in ks if np.any(k < n)]
+    bounds = [np.zeros(len(meas_list), dtype=np.int64)] + ks + [np.full(len(meas_list), n)]
     R_GI = R_GC @ R_CL @ R_LI
-    ref = None
-    if n_ref > 0:
-        ref = _refine_template(
-            t, info["first"], info["stop"], p_C, cov_C, p_L, cov_L, usable, known_at,
-            template, info["cov_template"], R_GI, cov_G, R_CL, R_LI,
-        )  # fmt: skip
-    # the rates as available at each epoch (omega_G, cov_w) and the least squares' rows
-    before = None
-    template_first, template_from = None, None
-    if ref is None:
-        omega_G, cov_fit, cov_w = rates_and_covariance(R_GI, cov_G, dt, h)
-        om_ls, cf_ls, cw_ls, R_ls = omega_G, cov_fit, cov_w, R_GI
-    else:
-        R_GI_old, cov_G_old = R_GI, cov_G
-        template_first = template
-        R_GI, cov_G, template, R_ls, cov_G2, k_ref = ref
-        template_from = k_ref
-        om_ls, cf_ls, cw_ls = rates_and_covariance(R_ls, cov_G2, dt, h)
-        m = min(int(k_ref.max()) + h, len(t))
-        om_o, cf_o, cw_o = rates_and_covariance(R_GI_old[:, :m], cov_G_old[:, :m], dt, h)
-        before = (om_o, np.trace(cw_o, axis1=-2, axis2=-1) / 3.0, R_GI_old[:, :m],
-                  cf_o if s.g_fit == "full" else None, k_ref)  # fmt: skip
-        early = np.arange(m)[None, :] < (k_ref - h)[:, None]  # the first template's rates
-        omega_G, cov_w = om_ls.copy(), cw_ls.copy()
-        omega_G[:, :m] = np.where(early[..., None], om_o, om_ls[:, :m])
-        cov_w[:, :m] = np.where(early[..., None, None], cw_o, cw_ls[:, :m])
+    history = [(bounds[0], template)]
+    vers = []  # (R_GI, cov_G, omega, cov_fit, cov_w) over the version's first epochs
+    tmpl, cov_t = template, info.get("cov_template")
+    for v in range(len(bounds) - 1):
+        m = min(int(bounds[v + 1].max()), n)  # a rate before bounds[v+1] - h needs no more
+        if v > 0:  # refine at bounds[v], with the previous version's G
+            tmpl, cov_t, R_GI, cov_G = _refine_template(
+                t, info["first"], bounds[v], m, p_C, cov_C, p_L, cov_L, usable, known_at,
+                tmpl, cov_t, R_GI, cov_G, R_CL, R_LI,
+            )  # fmt: skip
+            history.append((bounds[v], tmpl))
+        Rv, cGv = R_GI[:, :m], cov_G[:, :m]
+        # the runs' last version (the rows the least squares accumulates to the end): the
+        # unbiased rate fit (see rates_and_covariance)
+        last = (bounds[v + 1] >= n) & (v > 0)
+        vers.append((Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last))
+    # as reported at each epoch: G from a version's refinement on, the rate of epoch j (known
+    # at j + h) from the version in force at j + h
+    R_GI = np.full((len(meas_list), n, 3, 3), np.nan)
+    cov_G, omega_G, cov_w = R_GI.copy(), R_GI[..., 0].copy(), R_GI.copy()
+    ep = np.arange(n)[None, :]
+    for v, (Rv, cGv, omv, _, cwv) in enumerate(vers):
+        m = Rv.shape[1]
+        sel = (ep >= bounds[v][:, None]) & (ep < bounds[v + 1][:, None])
+        R_GI[:, :m] = np.where(sel[:, :m, None, None], Rv, R_GI[:, :m])
+        cov_G[:, :m] = np.where(sel[:, :m, None, None], cGv, cov_G[:, :m])
+        sel = (ep + h >= bounds[v][:, None]) & (ep + h < bounds[v + 1][:, None])
+        omega_G[:, :m] = np.where(sel[:, :m, None], omv, omega_G[:, :m])
+        cov_w[:, :m] = np.where(sel[:, :m, None, None], cwv, cov_w[:, :m])
     skipped["too_few_features"] = np.sum(~np.all(np.isfinite(R_GI), axis=(-1, -2)), axis=1)
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
+    # the least squares: the last version's rows, those of the earlier versions for the
+    # solutions before the next refinement
+    R_ls, _, om_ls, cf_ls, cw_ls = vers[-1]
+    before = [
+        (om, np.trace(cw, axis1=-2, axis2=-1) / 3.0, Rv, cf if full else None, bounds[v],
+         bounds[v + 1])
+        for v, (Rv, _, om, cf, cw) in enumerate(vers[:-1])
+    ]  # fmt: skip
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
         om_ls,
         np.trace(cw_ls, axis1=-2, axis2=-1) / 3.0,
@@ -820,7 +862,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_G,
         s,
         delay=s.rate_half_window,
-        cov_w=cf_ls if s.g_fit == "full" else None,
+        cov_w=cf_ls if full else None,
         R_GI_report=R_GI,
         before=before,
     )
@@ -833,7 +875,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_G=cov_G,
         omega_G=omega_G,
         var_omega=var_w,
-        template_G=template,
+        template_G=tmpl,
         known=known,
         known_at=known_at,
         R_GT=R_GT,
@@ -844,6 +886,5 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_ratios=cov_ratios,
         skipped=skipped,
         cov_omega=cov_w,
-        template_first=template_first,
-        template_from=template_from,
+        template_history=history if len(history) > 1 else None,
     )
