@@ -1062,8 +1062,10 @@ def run_filter(
         def empty(*shape):
             return np.zeros((B, 0) + shape)
 
+        # cov_L as it is (no NaN-free copy, 2 ms per run): the kernel reads it only where
+        # ``usable``, which the triangulation sets only for finite covariances
         _hu_kernel.run_filter_kernel(
-            t, fe.p_L, np.nan_to_num(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
+            t, fe.p_L, np.ascontiguousarray(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
             init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
             tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
             MAX_RATE_RAD_S,

@@ -351,7 +351,14 @@ def photogrammetric_frames(
 
 
 def joint_features(
-    Phi: Array, R_LG: Array, p: Array, cov: Array, cov_G: Array, use: NDArray[np.bool_], f0: Array
+    Phi: Array,
+    R_LG: Array,
+    p: Array,
+    cov: Array,
+    cov_G: Array,
+    use: NDArray[np.bool_],
+    f0: Array,
+    passes: int = 2,
 ) -> tuple[Array, Array, Array, NDArray[np.int64]] | None:
     """Batch least squares for a rigid body's features about its mass centre, from m epochs
     of points ``p`` (m,N,3) in a frame L, covariances ``cov`` (m,N,3,3), the measured
@@ -364,7 +371,8 @@ def joint_features(
     mass centre) from the translation; each feature is fitted to all its views, so the
     depth errors of a stereo point average over the viewing directions. Weights: each
     point's covariance plus what the G attitude error does to it through its lever arm
-    ``f_i`` (``f0`` (N,3) at first, then the solution; one re-linearisation); the
+    ``f_i`` (``f0`` (N,3) at first, then the solution: ``passes`` solutions, one
+    re-linearisation by default; one pass where ``f0`` is already about the mass centre); the
     covariance is scaled by the reduced chi-square when that exceeds one (beyond Hu 2024,
     which takes the features from one stereo sighting).
 
@@ -389,7 +397,7 @@ def joint_features(
         col,
     )
     f = np.nan_to_num(f0[idx])
-    for _ in range(2):
+    for _ in range(passes):
         # sums in a compiled loop (the numpy form made (M,3,3) temporaries: 4 ms per run)
         Nm, rhs, bb, cnt = _points_kernel.joint_normal_equations(*args, np.ascontiguousarray(f), nf)
         try:
@@ -685,7 +693,7 @@ def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
 
 def _refine_template(
     t, first, k_ref, upto, p_C, cov_C, p_L, cov_L, usable, known_at, template, cov_tmpl,
-    R_GI, cov_G, R_CL, R_LI,
+    R_GI, cov_G, R_CL, R_LI, refined=None,
 ):  # fmt: skip
     """One refinement of the template: refitted over the epochs ``first .. k_ref - 1`` of G
     (``first`` (B,), G's first epoch; ``k_ref`` (B,), the refinement's epoch, n where
@@ -710,12 +718,16 @@ def _refine_template(
     template rotated by the mean rotation between the two G over ``k_ref - 2h .. k_ref``):
     median attitude 0.094 -> 0.102 deg over 500 runs at 2e-5 rad, no change at 1e-6 rad.
 
+    ``refined`` (B,): the runs whose ``template`` is a fit's already (about its fitted mass
+    centre: one pass of the fit from it).
+
     Returns the refined template (B,N,3) (the previous one where the fit failed) and its
-    covariance, and G's attitude and covariance (B,upto,...) with it."""
+    covariance, G's attitude and covariance (B,upto,...) with it, and ``refined`` updated."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     new_t = template.copy()
     new_c = cov_tmpl.copy()
+    ref = np.zeros(B, dtype=bool) if refined is None else refined.copy()
     for b in np.flatnonzero(k_ref < n):
         j = np.flatnonzero(valid[b, first[b] : k_ref[b]]) + first[b]
         if len(j) < 10:
@@ -728,8 +740,11 @@ def _refine_template(
         kn = known_at[b, k_ref[b] - 1]
         use = usable[b, j] & kn[None, :]
         g = template[b]
+        # the lever arms: a refined template is about its fitted mass centre already (one
+        # pass); the first sightings' about one feature (centred, then re-linearised)
         out = joint_features(Phi, R_LG, p_L[b, j], cov_L[b, j], cov_G[b, j], use,
-                             g - np.nanmean(g[kn], axis=0))  # fmt: skip
+                             g if ref[b] else g - np.nanmean(g[kn], axis=0),
+                             passes=1 if ref[b] else 2)  # fmt: skip
         if out is None:
             continue
         _, f, cov_f, idx = out
@@ -744,6 +759,7 @@ def _refine_template(
         cov_s = Pm @ cov_f @ Pm.T
         for m, i in enumerate(idx):
             new_c[b, i] = cov_s[3 * m : 3 * m + 3, 3 * m : 3 * m + 3]
+        ref[b] = True
     m = upto
     use = usable[:, :m] & known_at[:, :m] & (k_ref < n)[:, None, None]
     w = np.where(use, 1.0 / np.maximum(np.trace(cov_C[:, :m], axis1=-2, axis2=-1), 1e-30), 0.0)
@@ -760,7 +776,7 @@ def _refine_template(
         R_CL[:, :m] @ R_LI[:, :m]
     )
     cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, m, 3, 3), np.nan)
-    return new_t, new_c, R_GI2, cov_G2
+    return new_t, new_c, R_GI2, cov_G2, ref
 
 
 def _refine_epochs(first: NDArray[np.int64], s: FrontEndSettings, dt: float, n: int):
@@ -819,12 +835,13 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     history = [(bounds[0], template)]
     vers = []  # (R_GI, cov_G, omega, cov_fit, cov_w) over the version's first epochs
     tmpl, cov_t = template, info.get("cov_template")
+    fitted = np.zeros(len(meas_list), dtype=bool)  # runs whose template is a fit's
     for v in range(len(bounds) - 1):
         m = min(int(bounds[v + 1].max()), n)  # a rate before bounds[v+1] - h needs no more
         if v > 0:  # refine at bounds[v], with the previous version's G
-            tmpl, cov_t, R_GI, cov_G = _refine_template(
+            tmpl, cov_t, R_GI, cov_G, fitted = _refine_template(
                 t, info["first"], bounds[v], m, p_C, cov_C, p_L, cov_L, usable, known_at,
-                tmpl, cov_t, R_GI, cov_G, R_CL, R_LI,
+                tmpl, cov_t, R_GI, cov_G, R_CL, R_LI, refined=fitted,
             )  # fmt: skip
             history.append((bounds[v], tmpl))
         Rv, cGv = R_GI[:, :m], cov_G[:, :m]
