@@ -1,5 +1,5 @@
-"""Checks behind docs/results/hu2024.md, Seventh session: the template's refinement and the
-iterated update.
+"""Checks behind docs/results/hu2024.md, Seventh and Eighth sessions: the template's
+refinement and the iterated update.
 
 * ``template``: the template's error per feature (rms after the best rotation onto the true
   features, median over runs) with the one-sighting template (``template_refine_s=0``) and
@@ -10,9 +10,17 @@ iterated update.
   0.03: attitude and position error and 1-sigma around the end of the 60-80 s occlusion,
   with the iterated update and without (``iterate_max=0``).
 
-Usage: python benchmarks/hu2024_refinement_checks.py template|occlusion
+* ``schedule``: the front end alone on 20 hu2024 runs (the campaign's seeds) at 2e-5 and
+  5e-5 rad, three settings: the seventh session's (``template_refine_s=30``), the eighth
+  session's schedule (8, 10, 30 s) with the per-epoch rate fit throughout
+  (``ls_unbiased_rates=false``), and the defaults. The template's error per version, the
+  DPACF frame's error against the true principal frame (median over the runs; a run without
+  a frame counts as failing) at 8-12, 50 and 200 s, and the inertia moments' error at 200 s.
+
+Usage: python benchmarks/hu2024_refinement_checks.py template|occlusion|schedule
 Last line: ``template_error_mm=<one sighting>,<refined> (2e-5 rad) wander_deg=<...>,<...>``
-or ``position_nees=<iterated>,<single>``
+or ``position_nees=<iterated>,<single>`` or ``frame_deg_10s=<per setting, 2e-5 then 5e-5>
+moments_err_200s=<...>``
 """
 
 from __future__ import annotations
@@ -112,7 +120,50 @@ def occlusion() -> None:
     print(f"position_nees={nees[0]:.3g},{nees[1]:.3g}")
 
 
+def schedule() -> None:
+    from hu2024_diagnostics import true_frame  # noqa: I001 (benchmarks/, on sys.path)
+
+    settings = {
+        "seventh session (30 s)": {"template_refine_s": 30.0},
+        "8, 10, 30 s, per-epoch rate fit": {"ls_unbiased_rates": False},
+        "defaults (8, 10, 30 s, unbiased rows)": {},
+    }
+    f10, m200 = [], []
+    for noise in (2e-5, 5e-5):
+        s = load_scenario("hu2024").with_updates(**{"sensor.noise.angular_rad": noise})
+        sims = [simulate(s, run_seed(s.montecarlo.seed, k)) for k in range(20)]
+        lam = np.array([8.0, 5.0, 4.0]) / 8.0
+        for name, tuning in settings.items():
+            fe = hu.frontend([m for _, m in sims], hu.parse_tuning(tuning))
+            t = fe.t
+            E = np.full(fe.R_GT.shape[:2], np.inf)
+            for b, (truth, _) in enumerate(sims):
+                ok = np.all(np.isfinite(fe.R_GT[b]), axis=(-1, -2))
+                Rc = true_frame(fe.template_G[b], fe.known[b], truth)
+                E[b, ok] = np.degrees(np.linalg.norm(rot.log_map(Rc.T @ fe.R_GT[b, ok]), axis=-1))
+            errs = []
+            for v, (k_v, tmpl) in enumerate(fe.template_history or [(None, fe.template_G)]):
+                r = []
+                for b, (truth, _) in enumerate(sims):
+                    kn = fe.known_at[b, min(int(k_v[b]), len(t)) - 1] if v else fe.known[b]
+                    g, f = tmpl[b][kn], truth.features_T[kn]
+                    e = (g - g.mean(0)) - (f - f.mean(0)) @ _aligned(g, f).T
+                    r.append(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+                errs.append(f"{1e3 * np.median(r):.3g}")
+            med = np.median(E, axis=0)
+            at = {ts: med[int(np.argmin(abs(t - ts)))] for ts in (8, 9, 10, 11, 12, 50, 200)}
+            mom = np.nanmedian(np.abs(fe.moments[:, -1] - lam).max(-1))
+            print(f"{noise:g} rad, {name}: template error per version {' / '.join(errs)} mm; "
+                  f"frame error median at 8/9/10/11/12 s "
+                  f"{' / '.join(f'{at[x]:.3g}' for x in (8, 9, 10, 11, 12))} deg, at 50 / 200 s "
+                  f"{at[50]:.3g} / {at[200]:.3g} deg; moments error at 200 s {mom:.2g}")  # fmt: skip
+            f10.append(at[10])
+            m200.append(mom)
+    print(f"frame_deg_10s={','.join(f'{x:.3g}' for x in f10)} "
+          f"moments_err_200s={','.join(f'{x:.2g}' for x in m200)}")  # fmt: skip
+
+
 if __name__ == "__main__":
-    {"template": template, "occlusion": occlusion}[
+    {"template": template, "occlusion": occlusion, "schedule": schedule}[
         sys.argv[1] if len(sys.argv) > 1 else "template"
     ]()

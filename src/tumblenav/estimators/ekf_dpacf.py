@@ -167,6 +167,17 @@ class HuTuning(BaseModel):
         "start on the same data",
     )
 
+    ls_unbiased_rates: bool = Field(
+        True,
+        description="the inertia least squares takes, from the template's last refinement "
+        "on, the rates of the cubic (unbiased) fit at every epoch, past ones reprocessed "
+        "(beyond the paper): the line fit, chosen where its error is smaller epoch by "
+        "epoch, has a third-order bias that does not average out over the growing batch "
+        "(inertia ratios 1.2e-3 -> 4e-5 off at 200 s, 2e-5 rad, "
+        "benchmarks/hu2024_refinement_checks.py schedule); false: the per-epoch choice "
+        "throughout. No effect without a refinement",
+    )
+
     @field_validator("template_refine_s")
     @classmethod
     def _refine_times(cls, v: float | list[float]) -> float | list[float]:
@@ -1551,6 +1562,7 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
             max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
             g_fit=tun.g_attitude_fit,
             template_refine_s=tuple(np.atleast_1d(np.asarray(tun.template_refine_s, float))),
+            unbiased_last=tun.ls_unbiased_rates,
         ),
     )
     fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

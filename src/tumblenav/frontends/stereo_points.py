@@ -54,6 +54,8 @@ class FrontEndSettings:
     # refit the template over this much data after G's definition (seconds; one value or
     # several, each a refinement; 0 or empty: never)
     template_refine_s: float | tuple[float, ...] = 0.0
+    # after the last refinement, the least squares' rows from the unbiased (cubic) rate fit
+    unbiased_last: bool = True
 
 
 @dataclass
@@ -847,7 +849,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         Rv, cGv = R_GI[:, :m], cov_G[:, :m]
         # the runs' last version (the rows the least squares accumulates to the end): the
         # unbiased rate fit (see rates_and_covariance)
-        last = (bounds[v + 1] >= n) & (v > 0)
+        last = (bounds[v + 1] >= n) & (v > 0) & s.unbiased_last
         vers.append((Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last))
     # as reported at each epoch: G from a version's refinement on, the rate of epoch j (known
     # at j + h) from the version in force at j + h
