@@ -14,6 +14,8 @@ rig and a time grid, this front end computes, for every run and epoch:
 4. the least-squares identification of the normalised inertia and angular momentum
    (Hu 2024 eq. 9-14), accumulated over time (growing batch). Beyond the paper, each epoch is
    weighted by the inverse variance of its rate, so far-away (noisy) epochs do not spoil it;
+   the template is refined on a schedule (``template_refine_s``) and each refinement
+   reprocesses the batch's past rows (``_refine_template``);
 5. the unique principal-axis frame (DPACF, Hu 2024 eq. 17) and the attitude measurement
    ``q_TI = q_TG (x) q_GI`` (Hu 2024 eq. 31) with a first-order covariance: eigenvector
    perturbation of the identified inertia plus the G attitude noise.
@@ -457,6 +459,10 @@ def rates_and_covariance(
     range, where the bias dominates by a factor 10), the line where they are noisy, with the
     bias's mean square added to its covariance. ``cov_G`` is taken as constant over the
     window.
+
+    ``unbiased`` (bool or (B,)): the cubic fit wherever it exists, in those runs (the rows of
+    a growing least-squares batch: there the noise averages out but the line's bias does
+    not; ``process`` uses it after the template's last refinement).
 
     Returns the rate, the covariance of the fit's noise (the ``2h`` attitudes other than
     the centre's) and the full covariance, which adds the centre attitude's part: every
