@@ -1073,7 +1073,7 @@ def run_filter(
         def empty(*shape):
             return np.zeros((B, 0) + shape)
 
-        # cov_L as it is (no NaN-free copy, 2 ms per run): the kernel reads it only where
+        # cov_L as it is (no NaN-free copy of the largest array): the kernel reads it only where
         # ``usable``, which the triangulation sets only for finite covariances
         _hu_kernel.run_filter_kernel(
             t, fe.p_L, np.ascontiguousarray(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,

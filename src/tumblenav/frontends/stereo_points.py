@@ -86,16 +86,6 @@ class PointsFrontEnd:
     # refinement's epoch is n in runs where it did not happen); None: never refined
     template_history: list[tuple[NDArray[np.int64], Array]] | None = None
 
-    @property
-    def template_first(self) -> Array:
-        """The template of the features' first sightings (B,N,3)."""
-        return self.template_G if self.template_history is None else self.template_history[0][1]
-
-    @property
-    def template_from(self) -> NDArray[np.int64] | None:
-        """The epoch (B,) of the first refinement (n where none); None: never refined."""
-        return None if self.template_history is None else self.template_history[1][0]
-
     def template_at(self, k: int | NDArray[np.int64]) -> Array:
         """The template (B,N,3) as known at epoch ``k`` (scalar or per run): the latest
         version refined at or before ``k`` (causal use of the template)."""
