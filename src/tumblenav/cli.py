@@ -1,22 +1,79 @@
 """The ``tumblenav`` command (typer).
 
-Exit status: 0 ok, 2 bad input (one-line message, no traceback), 1 anything else.
+Exit status: 0 ok, 1 an internal error, 2 bad input (one-line message, no traceback, nothing
+started), 130 interrupted by SIGINT (Ctrl-C), 143 by SIGTERM: the command stops within about a
+second, says what was kept and how to resume, and leaves no half-written file.
 Set ``TUMBLENAV_DEBUG=1`` to see the traceback of an unexpected error.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
+import click
 import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from typer.core import TyperCommand, TyperGroup
 
-from tumblenav.errors import InputError
+from tumblenav.errors import InputError, Interrupted
+
+
+def _refuse_repeated_options(cmd: click.Command, ctx: click.Context, args: list[str]) -> None:
+    """Click silently keeps the last of a repeated option (``-e a -e b`` runs only b):
+    refuse it as a usage error (exit 2) instead."""
+    try:
+        _, _, order = cmd.make_parser(ctx).parse_args(args=list(args))
+    except click.UsageError:
+        return  # click reports it itself
+    seen: set[str] = set()
+    for param in order:
+        is_option = getattr(param, "param_type_name", "") == "option"
+        if is_option and not getattr(param, "multiple", False) and not getattr(param, "count", 0):
+            if param.name in seen:
+                why = (
+                    " (one estimator per command; run the command once per estimator)"
+                    if param.name == "estimator"
+                    else ""
+                )
+                raise click.UsageError(
+                    f"option {'/'.join(param.opts)} given more than once; give it once{why}",
+                    ctx=ctx,
+                )
+            seen.add(param.name or "")
+
+
+class StrictCommand(TyperCommand):
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        _refuse_repeated_options(self, ctx, args)
+        return super().parse_args(ctx, args)
+
+
+class StrictGroup(TyperGroup):
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if args and args[0].startswith("-"):
+            _refuse_repeated_options(self, ctx, [a for a in args if a.startswith("-")])
+        return super().parse_args(ctx, args)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        import tumblenav
+
+        try:
+            v = version("tumblenav")
+        except Exception:  # noqa: BLE001 - not installed as a distribution
+            v = tumblenav.__version__
+        typer.echo(f"tumblenav {v}")
+        raise typer.Exit(0)
+
 
 app = typer.Typer(
     help="Relative navigation of a tumbling, non-cooperative spacecraft: simulate, sense, "
@@ -24,8 +81,28 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    cls=StrictGroup,
 )
 scenarios_app = typer.Typer(help="Built-in scenarios.", no_args_is_help=True)
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="print the version and exit"
+        ),
+    ] = False,
+) -> None:
+    """Relative navigation of a tumbling, non-cooperative spacecraft: simulate, sense,
+    estimate, evaluate.
+
+    Exit status: 0 ok, 1 internal error, 2 bad input, 130 interrupted (Ctrl-C), 143
+    terminated (SIGTERM).
+    """
+
+
 app.add_typer(scenarios_app, name="scenarios")
 
 out = Console()
@@ -33,13 +110,18 @@ err = Console(stderr=True)
 
 ScenarioArg = Annotated[str, typer.Argument(help="built-in scenario name or path to a YAML file")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="output folder")]
+PlotsOpt = Annotated[bool, typer.Option("--plots/--no-plots", help="also write PNG figures")]
+SeedOpt = Annotated[
+    int | None,
+    typer.Option(help="base seed (default: the scenario's montecarlo.seed)", min=0),
+]
 EstimatorOpt = Annotated[
     str | None,
     typer.Option("--estimator", "-e", help="see `tumblenav estimators` (default: the scenario's)"),
 ]
 
 
-@scenarios_app.command("list")
+@scenarios_app.command("list", cls=StrictCommand)
 def scenarios_list() -> None:
     """List the built-in scenarios."""
     from tumblenav.scenario import builtin_names, load_scenario
@@ -51,7 +133,7 @@ def scenarios_list() -> None:
     out.print(table)
 
 
-@scenarios_app.command("show")
+@scenarios_app.command("show", cls=StrictCommand)
 def scenarios_show(name: Annotated[str, typer.Argument(help="built-in scenario name")]) -> None:
     """Print a built-in scenario as YAML (save it, edit it, pass its path to other commands)."""
     from tumblenav.scenario import builtin_text
@@ -59,12 +141,12 @@ def scenarios_show(name: Annotated[str, typer.Argument(help="built-in scenario n
     sys.stdout.write(builtin_text(name))
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def simulate(
     scenario: ScenarioArg,
     output: OutOpt = Path("out/simulate"),
     seed: Annotated[int | None, typer.Option(help="run seed (default: the scenario's)")] = None,
-    plots: Annotated[bool, typer.Option(help="also write PNG figures")] = True,
+    plots: PlotsOpt = True,
 ) -> None:
     """Simulate the truth and the measurements; write truth.nc and measurements.nc."""
     from tumblenav.pipeline import run_simulate
@@ -74,7 +156,7 @@ def simulate(
         out.print(f"wrote {f}")
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def estimate(
     scenario: ScenarioArg,
     estimator: EstimatorOpt = None,
@@ -83,16 +165,19 @@ def estimate(
         Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
     ] = None,
     seed: Annotated[int | None, typer.Option(help="run seed (default: the scenario's)")] = None,
+    plots: PlotsOpt = True,
 ) -> None:
     """Estimate one run; write estimates.nc, summary.json and error figures."""
     from tumblenav.pipeline import print_summary, run_estimate
 
-    summary = run_estimate(scenario, estimator, output, measurements, seed, console=err)
+    summary = run_estimate(
+        scenario, estimator, output, measurements, seed, console=err, plots=plots
+    )
     print_summary(summary, out)
     out.print(f"results in {output}")
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def montecarlo(
     scenario: ScenarioArg,
     estimator: EstimatorOpt = None,
@@ -104,16 +189,28 @@ def montecarlo(
     ] = None,
     scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address")] = None,
     output: OutOpt = Path("out/montecarlo"),
+    seed: SeedOpt = None,
+    plots: PlotsOpt = True,
 ) -> None:
     """Seeded Monte Carlo campaign; resumable: rerun with the same -o to finish it."""
     from tumblenav.pipeline import print_summary, run_montecarlo
 
-    summary = run_montecarlo(scenario, estimator, runs, output, workers, scheduler, console=err)
+    summary = run_montecarlo(
+        scenario,
+        estimator,
+        runs,
+        output,
+        workers,
+        scheduler,
+        console=err,
+        seed=seed,
+        plots=plots,
+    )
     print_summary(summary, out)
     out.print(f"results in {output}")
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def reproduce(
     paper: Annotated[str, typer.Argument(help="hu2024, yu2019, chang2021 or kabir2025")],
     runs: Annotated[
@@ -131,7 +228,7 @@ def reproduce(
     out.print(f"{len(summary.get('cases', []))} cases; results in {output}")
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def estimators() -> None:
     """List the estimators and what each needs."""
     from tumblenav.estimators.base import available
@@ -142,7 +239,7 @@ def estimators() -> None:
     out.print(table)
 
 
-@app.command()
+@app.command(cls=StrictCommand)
 def demo(output: OutOpt = Path("out/demo")) -> None:
     """Run the main job on the built-in default scenario (hu2024) and say where results are."""
     from tumblenav.pipeline import run_demo
@@ -150,20 +247,49 @@ def demo(output: OutOpt = Path("out/demo")) -> None:
     run_demo(output, console=out)
 
 
+def _install_signal_handlers() -> None:
+    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread (typer would turn a
+    KeyboardInterrupt into a silent exit status); a second signal during the cleanup ends
+    the process at once."""
+
+    def handler(signum: int, frame: Any) -> None:
+        def hard_exit(signum2: int, frame2: Any) -> None:
+            os._exit(128 + signum2)
+
+        signal.signal(signal.SIGINT, hard_exit)
+        signal.signal(signal.SIGTERM, hard_exit)
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: maps InputError to exit 2 and unexpected errors to exit 1, one line each."""
+    """Entry point: exit 0 ok, 2 for an InputError or a usage error, 130/143 when interrupted
+    (SIGINT/SIGTERM), 1 for anything unexpected; one line each, no traceback."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    _install_signal_handlers()
     try:
-        app(args=argv, standalone_mode=False)
+        rv = app(args=argv, standalone_mode=False)
     except InputError as exc:
         err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
+    except Interrupted as exc:
+        name = signal.Signals(exc.signum).name
+        kept = exc.kept or "no result was written (files already in the output folder are whole)"
+        err.print(
+            f"[bold yellow]interrupted ({name}):[/] {escape(kept)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:  # raised before the handlers were installed
+        err.print("[bold yellow]interrupted (SIGINT)[/]")
+        sys.exit(130)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
         err.print("aborted")
-        sys.exit(130)
-    except KeyboardInterrupt:
-        err.print("interrupted; finished results are kept")
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - the one place that turns crashes into a line
         # click (vendored by recent typer) usage errors: show them as click does, exit 2
@@ -181,7 +307,12 @@ def main(argv: list[str] | None = None) -> None:
             soft_wrap=True,
         )
         sys.exit(1)
-    sys.exit(0)
+    finally:
+        for s_, h in previous.items():
+            signal.signal(s_, h)
+    # standalone_mode=False returns an Exit's code (e.g. 130 from typer's own KeyboardInterrupt
+    # handling) instead of raising it: pass it on, never report success for it
+    sys.exit(rv if isinstance(rv, int) else 0)
 
 
 if __name__ == "__main__":

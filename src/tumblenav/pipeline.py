@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from tumblenav import io, metrics
@@ -15,8 +16,16 @@ from tumblenav.campaign import runner
 from tumblenav.campaign.store import run_seed
 from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
+from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
-from tumblenav.simulation import StereoMeasurements, Truth, run_streams, simulate
+from tumblenav.simulation import (
+    DepthMeasurements,
+    StereoMeasurements,
+    Truth,
+    make_rig,
+    run_streams,
+    simulate,
+)
 
 
 def run_simulate(
@@ -42,17 +51,84 @@ def run_simulate(
     return files
 
 
-def _load_measurements(folder: Path) -> tuple[StereoMeasurements, Truth | None]:
+def _rig_differences(file_rig, scenario_rig) -> list[str]:
+    """What differs between the rig a measurement file was taken with and the scenario's."""
+    out = []
+    if file_rig.kind != scenario_rig.kind:
+        out.append(f"rig {file_rig.kind} (scenario: {scenario_rig.kind})")
+    if not np.isclose(file_rig.baseline_m, scenario_rig.baseline_m, rtol=1e-6, atol=1e-9):
+        out.append(
+            f"baseline {file_rig.baseline_m:g} m (scenario: {scenario_rig.baseline_m:g} m)"
+        )
+    for name, cf, cs in zip(("left", "right"), file_rig.cameras, scenario_rig.cameras, strict=True):
+        for attr, unit in (("focal_px", "px"), ("principal_point_px", "px"), ("resolution_px", "px")):
+            a, b = np.asarray(getattr(cf, attr), float), np.asarray(getattr(cs, attr), float)
+            if a.shape != b.shape or not np.allclose(a, b, rtol=1e-6, atol=1e-6):
+                out.append(
+                    f"{name} {attr} {np.round(a, 6).tolist()} {unit} (scenario: "
+                    f"{np.round(b, 6).tolist()} {unit})"
+                )
+        if not np.allclose(cf.R_CkC, cs.R_CkC, atol=1e-9) or not np.allclose(
+            cf.p_CkinC, cs.p_CkinC, atol=1e-9
+        ):
+            out.append(f"{name} camera pose in the rig (R_CkC, p_CkinC)")
+    return out
+
+
+def _load_measurements(folder: Path, scenario: Scenario):
+    """Read ``folder/measurements.nc`` (and ``truth.nc`` if present), checked against the
+    scenario: the sensor kind, the rig and its calibration, the noise the estimators weight
+    by. Anything that does not match is an InputError naming the file and what differs."""
     folder = Path(folder)
-    ds = io.read_netcdf(
-        folder / "measurements.nc", required=("uv", "observed", "q_CL", "q_LI", "R_CkC", "p_CkinC")
-    )
-    try:
-        meas = StereoMeasurements.from_dataset(ds)
-    except (KeyError, ValueError, IndexError) as exc:
+    path = folder / "measurements.nc"
+    ds = io.read_netcdf(path)
+    kind = "stereo" if "uv" in ds.variables else "depth" if "points" in ds.variables else None
+    if kind is None:
         raise InputError(
-            f"malformed measurements ({exc})", str(folder / "measurements.nc")
-        ) from None
+            "holds neither stereo tracks (variable uv) nor depth point clouds (points)", str(path)
+        )
+    if kind != scenario.sensor.kind:
+        raise InputError(
+            f"holds {kind} measurements, but scenario {scenario.name} has a "
+            f"{scenario.sensor.kind} sensor: give the scenario the data were taken with",
+            str(path),
+        )
+    if kind == "depth":
+        from_ds = getattr(DepthMeasurements, "from_dataset", None)
+        if from_ds is None:
+            raise InputError(
+                "reading depth measurements from a folder is not supported yet: run "
+                f"`tumblenav estimate {scenario.name}` without --measurements",
+                str(path),
+            )
+        meas = from_ds(ds)
+    else:
+        required = ("uv", "observed", "q_CL", "q_LI", "R_CkC", "p_CkinC", "focal_px")
+        missing = [v for v in required if v not in ds.variables]
+        if missing:
+            raise InputError(f"missing variable(s) {', '.join(missing)}", str(path))
+        try:
+            meas = StereoMeasurements.from_dataset(ds)
+        except (KeyError, ValueError, IndexError, TypeError) as exc:
+            raise InputError(f"malformed measurements ({exc})", str(path)) from None
+        if not np.isfinite(meas.noise_px) or meas.noise_px <= 0:
+            raise InputError(
+                "no valid noise_px attribute (the 1-sigma pixel noise the estimators weight "
+                "measurements by): add it to the file's global attributes, in px",
+                str(path),
+            )
+        diff = _rig_differences(meas.rig, make_rig(scenario.sensor))
+        if diff:
+            raise InputError(
+                f"taken with another stereo rig than scenario {scenario.name}'s: "
+                + "; ".join(diff)
+                + " (give the scenario of the rig that took the data)",
+                str(path),
+            )
+    if len(meas.t) < 2:
+        raise InputError("needs at least two epochs", str(path))
+    if not np.all(np.diff(meas.t) > 0):
+        raise InputError("times are not strictly increasing", str(path))
     truth = None
     if (folder / "truth.nc").exists():
         truth = Truth.from_dataset(io.read_netcdf(folder / "truth.nc"))
@@ -61,22 +137,24 @@ def _load_measurements(folder: Path) -> tuple[StereoMeasurements, Truth | None]:
 
 def run_estimate(
     scenario_ref: str,
-    estimator: str,
+    estimator: str | None,
     output: Path,
     measurements: Path | None = None,
     seed: int | None = None,
     console: Console | None = None,
+    plots: bool = True,
 ) -> dict[str, Any]:
-    """One run: simulate (or read) measurements, estimate, evaluate, write files and figures."""
+    """One run: simulate (or read) measurements, estimate, evaluate, write files and figures.
+
+    The estimator is checked against the scenario, and the measurements against both, before
+    any work (InputError)."""
     scenario = load_scenario(scenario_ref)
     estimator = estimator or scenario.estimator.name
-    est = est_base.get(estimator)
+    est = est_base.get_for(estimator, scenario)
     con = console or Console(stderr=True)
     ss = run_seed(scenario.montecarlo.seed if seed is None else seed, 0)
     if measurements is not None:
-        meas, truth = _load_measurements(measurements)
-        if len(meas.t) < 2:
-            raise InputError("needs at least two epochs", str(measurements))
+        meas, truth = _load_measurements(measurements, scenario)
     else:
         with con.status(f"simulating {scenario.name}"):
             truth, meas = simulate(scenario, ss)
@@ -85,9 +163,12 @@ def run_estimate(
                 f"scenario {scenario.name}: {scenario.sensor.kind} measurements are "
                 f"not simulated yet, so {estimator} cannot run on it"
             )
+    if getattr(est, "compiled", False) and not kernels_compiled():
+        con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
     with con.status(f"{estimator} on {scenario.name} ({len(meas.t)} epochs)"):
         hist = est.run(scenario, meas, run_streams(ss)["estimator"])
     output = Path(output)
+    r = metrics.evaluate_run(est, hist, truth) if truth is not None else None
     x_true = est.truth_state(truth, hist) if truth is not None else None
     io.write_netcdf(
         io.estimates_dataset(hist, scenario.name, estimator, x_true), output / "estimates.nc"
@@ -99,25 +180,27 @@ def run_estimate(
         "window_s": list(scenario.window_s),
         "skipped": hist.skipped,
     }
-    if x_true is not None:
-        r = metrics.run_errors(hist, x_true)
+    if measurements is not None:
+        summary["measurements"] = str(Path(measurements) / "measurements.nc")
+    if r is not None:
         summary["rmse"] = {
             k: metrics.rmse_over_time(v, r.t, scenario.window_s) for k, v in r.errors.items()
         }
         summary["nees"] = metrics.consistency(r.nees[None], r.nees_dof, r.t, scenario.window_s)
         summary["nis"] = metrics.consistency(r.nis[None], r.nis_dof[None], r.t, scenario.window_s)
-        figures.plot_error_history(
-            hist,
-            x_true,
-            output / "errors.png",
-            f"{scenario.name} / {estimator}: errors and +-3 sigma",
-        )
+        if plots:
+            figures.plot_error_history(
+                hist,
+                x_true,
+                output / "errors.png",
+                f"{scenario.name} / {estimator}: errors and +-3 sigma",
+            )
     if not np.isfinite(hist.x).any():
         summary["note"] = (
             f"{estimator} never started: its start condition was not met in this run "
             + str(hist.info.get("start_condition", "(see the estimator's documentation)"))
         )
-        con.print(f"[yellow]note:[/] {summary['note']}")
+    summary["warnings"] = assess(summary)
     io.write_json(summary, output / "summary.json")
     return summary
 
@@ -131,12 +214,18 @@ def run_montecarlo(
     scheduler: str | None = None,
     console: Console | None = None,
     scenario: Scenario | None = None,
+    seed: int | None = None,
+    plots: bool = True,
 ) -> dict:
-    """A resumable campaign plus its figures (RMSE vs time, NEES vs time)."""
+    """A resumable campaign plus its figures (RMSE vs time, NEES vs time). ``seed`` replaces
+    the scenario's ``montecarlo.seed`` (run k's streams come from ``SeedSequence(seed,
+    spawn_key=(k,))``)."""
     scenario = scenario or load_scenario(scenario_ref)
+    if seed is not None:
+        scenario = scenario.with_updates(**{"montecarlo.seed": seed})
     estimator = estimator or scenario.estimator.name
     runs = runs or scenario.montecarlo.runs
-    est_base.get(estimator)
+    est_base.get_for(estimator, scenario)
     summary = runner.run_campaign(
         scenario,
         estimator,
@@ -146,45 +235,138 @@ def run_montecarlo(
         scheduler=scheduler,
         console=console,
     )
-    campaign_figures(Path(output), scenario, estimator, runs)
+    summary["warnings"] = assess(summary)
+    io.write_json(summary, Path(output) / "summary.json")
+    if plots:
+        campaign_figures(Path(output), scenario, estimator, runs)
     return summary
 
 
 def campaign_curves(folder: Path, runs: int) -> tuple[np.ndarray, dict, dict]:
-    """RMSE-over-runs curves (Hu 2024 eq. 45) and run-averaged NEES of a campaign folder."""
+    """RMSE-over-runs curves (Hu 2024 eq. 45) and the consistency arrays of a campaign folder.
+
+    Returns ``t`` (n,) s, ``curves`` (quantity key -> (n,) RMSE over runs) and ``cons``: what
+    :func:`tumblenav.campaign.runner.collect` gives (``nees``, ``nees_dof``, ``nis``,
+    ``nis_dof``, ``runs``) plus ``median`` (key -> (n,) median over runs) and ``nees_per_dof``,
+    ``nis_per_dof``: (n,) run averages of each run's value over its dof (NaN where no run has
+    one: NEES is stored at 1 Hz, NIS only where an update happened).
+    """
     from tumblenav.campaign.store import CampaignStore
 
     t, errs, cons = runner.collect(CampaignStore(Path(folder)), runs)
     curves = {k: metrics.rmse_over_runs(v) for k, v in errs.items()}
     cons["median"] = {k: metrics.nanmedian_quiet(v, axis=0) for k, v in errs.items()}
+    for name in ("nees", "nis") if cons else ():
+        v = np.asarray(cons[name], dtype=float)
+        dof = np.broadcast_to(np.asarray(cons[f"{name}_dof"], dtype=float), v.shape)
+        per_dof = np.where(np.isfinite(v) & (dof > 0), v / np.where(dof > 0, dof, 1.0), np.nan)
+        cons[f"{name}_per_dof"] = metrics.nanmean_quiet(per_dof, axis=0)
     return t, curves, cons
 
 
 def campaign_figures(folder: Path, scenario: Scenario, estimator: str, runs: int) -> None:
+    """A campaign's figures: ``rmse_<key>.png`` (RMSE over runs and the median run vs time,
+    per quantity) and ``nees.png`` (run-averaged NEES/dof and NIS/dof vs time with their 95%
+    chi-square bounds), with the steady-state window shaded and the scenario's occlusions
+    hatched."""
+    folder = Path(folder)
     t, curves, cons = campaign_curves(folder, runs)
     if not curves:
         return
+    n_runs, window = len(cons["runs"]), scenario.window_s
+    occlusions = figures.occlusion_windows(scenario)
     for key, y in curves.items():
+        r = metrics.rmse_over_time(y, t, window)
+        unit = figures.quantity_unit(key)
         figures.plot_rmse(
             {f"{estimator} RMSE": (t, y), f"{estimator} median": (t, cons["median"][key])},
-            f"{key}",
+            key,
             folder / f"rmse_{key}.png",
-            f"{scenario.name}: Monte Carlo RMSE over {len(cons['runs'])} runs",
-            window=scenario.window_s,
+            f"{scenario.name} / {estimator}: RMSE over {n_runs} runs (Hu 2024 eq. 45) and "
+            f"median; {r:.3g}{'' if unit == '-' else ' ' + unit} over the window "
+            f"{window[0]:g}-{window[1]:g} s",
+            window=window,
+            occlusions=occlusions,
         )
-    nees = metrics.nanmean_quiet(cons["nees"], axis=0) / cons["nees_dof"]
-    lo, hi = metrics.chi2_bounds(cons["nees_dof"], len(cons["runs"]))
+    panels = []
+    for name in ("nees", "nis"):
+        c = metrics.consistency(cons[name], cons[f"{name}_dof"], t, window)
+        what = "full state" if name == "nees" else "typical"
+        panels.append(
+            figures.ConsistencyPanel(
+                f"{name.upper()} / dof ({what} dof {c['dof']})",
+                {f"run-average {name.upper()} / dof": cons[f"{name}_per_dof"]},
+                tuple(c["bounds95"]) if c["bounds95"] else None,
+            )
+        )
     figures.plot_consistency(
         t,
-        {"NEES / dof": nees},
-        (lo, hi),
+        panels,
+        None,
         folder / "nees.png",
-        f"{scenario.name} / {estimator}: consistency",
+        f"{scenario.name} / {estimator}: consistency over {n_runs} runs (95% bounds for the "
+        f"average of {n_runs} runs)",
+        window=window,
+        occlusions=occlusions,
     )
 
 
+def _outside(c: dict | None) -> str | None:
+    """'above' / 'below' when a consistency statistic's mean lies outside its 95% bounds."""
+    if not c or c.get("mean") is None or not c.get("bounds95"):
+        return None
+    lo, hi = c["bounds95"]
+    return "above" if c["mean"] > hi else "below" if c["mean"] < lo else None
+
+
+def assess(summary: dict[str, Any]) -> list[str]:
+    """One line for each thing in a summary a user must not miss: a mean NEES or NIS outside
+    its 95% chi-square bounds (and what that means), runs that never started, diverged or
+    failed. Empty when the result can be taken as it is."""
+    out = []
+    meaning = {
+        ("nees", "above"): "the covariance is over-confident: the errors are larger than the "
+        "filter claims, so its 3-sigma bounds cannot be trusted",
+        ("nees", "below"): "the covariance is conservative: the errors are smaller than the "
+        "filter claims",
+        ("nis", "above"): "the innovations are larger than the filter predicts (measurement or "
+        "process noise too small, or a wrong model)",
+        ("nis", "below"): "the innovations are smaller than the filter predicts (measurement "
+        "noise set too large)",
+    }
+    for name in ("nees", "nis"):
+        side = _outside(summary.get(name))
+        if side:
+            c = summary[name]
+            lo, hi = c["bounds95"]
+            out.append(
+                f"mean {name.upper()}/dof {c['mean']:.3g} is {side} its 95% bounds "
+                f"[{lo:.3g}, {hi:.3g}]: {meaning[(name, side)]}"
+            )
+    runs = summary.get("runs") or 0
+    if summary.get("note"):
+        out.append(summary["note"])
+    elif summary.get("runs_without_estimate"):
+        out.append(
+            f"{summary['runs_without_estimate']} of {runs} runs produced no estimate in the "
+            "steady-state window (never started, or stopped): they are left out of the RMSE"
+        )
+    diverged = (summary.get("skipped") or {}).get("diverged", 0)
+    if diverged:
+        out.append("the filter diverged and was stopped: the estimates after that are NaN")
+    if summary.get("runs_diverged"):
+        out.append(f"{summary['runs_diverged']} of {runs} runs diverged and were stopped")
+    if summary.get("runs_failed"):
+        out.append(
+            f"{summary['runs_failed']} run(s) failed with an error (seeds and errors under "
+            "'failed' in summary.json)"
+        )
+    return out
+
+
 def print_summary(summary: dict[str, Any], console: Console) -> None:
-    """summary.json as a table: RMSE over the window, and for campaigns the median run."""
+    """summary.json as a table: RMSE over the window, and for campaigns the median run;
+    NEES/NIS outside their bounds are marked, and every warning is printed below."""
     w = summary.get("window_s")
     console.print(
         f"[bold]{summary.get('scenario')} / {summary.get('estimator')}[/], "
@@ -205,9 +387,13 @@ def print_summary(summary: dict[str, Any], console: Console) -> None:
         c = summary.get(name)
         if c and c.get("mean") is not None:
             lo, hi = c["bounds95"]
-            row = [f"{name.upper()}/dof (95%: {lo:.3g}-{hi:.3g})", f"{c['mean']:.3g}"]
+            side = _outside(c)
+            value = f"{c['mean']:.3g}" + (f" [bold red]({side} bounds)[/]" if side else " (ok)")
+            row = [f"{name.upper()}/dof (95%: {lo:.3g}-{hi:.3g})", value]
             table.add_row(*(row + ([""] if per_run else [])))
     console.print(table)
+    for line in summary.get("warnings") or []:
+        console.print(f"[bold yellow]warning:[/] {escape(line)}", highlight=False)
 
 
 def run_demo(output: Path, console: Console) -> None:

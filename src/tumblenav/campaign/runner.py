@@ -1,18 +1,32 @@
 """Monte Carlo campaigns: N seeded runs on local processes or a Dask cluster, resumable.
 
-Each finished run is stored at once (see :mod:`tumblenav.campaign.store`); running the same
-campaign again into the same folder keeps the finished runs and does only the missing ones.
-A run that raises is recorded as failed with its seed and error, and the campaign goes on.
-Estimators that offer ``run_batch`` get chunks of runs to vectorise over.
+Each finished run is stored at once by the process that computed it (see
+:mod:`tumblenav.campaign.store`); running the same campaign again into the same folder keeps
+the finished runs and does only the missing ones. A run that raises is recorded as failed with
+its seed and error, and the campaign goes on.
+
+Estimators that offer ``run_batch`` get chunks of :data:`BATCH_CHUNK` runs to vectorise over.
+Chunks are fixed by run index (runs 0-15, 16-31, ...), whatever the number of workers or what
+an earlier, interrupted campaign finished, so a run's arithmetic, and hence its stored result,
+does not depend on how the campaign was scheduled or resumed.
+
+Local runs are computed in worker processes (even with one worker): the parent only schedules,
+shows progress and stays responsive, so an interrupt (SIGINT/SIGTERM) stops the campaign within
+about a second (:func:`_stop_pool` terminates the workers; at most the chunks in flight are
+lost). A worker that dies (killed, out of memory) is replaced and its chunk redone; runs
+already stored are never recomputed into the store.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import signal
+import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +42,15 @@ from rich.progress import (
 
 from tumblenav import io, metrics
 from tumblenav.campaign.store import CampaignStore, run_seed
-from tumblenav.errors import InputError
+from tumblenav.errors import InputError, Interrupted
 from tumblenav.estimators import base as est_base
+from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, scenario_to_yaml
 from tumblenav.simulation import run_streams, simulate
+
+BATCH_CHUNK = 16  # runs per run_batch call: as fast per run as 128 (cache-friendlier), and
+# an interrupt loses at most this many runs per worker (benchmarks/hu2024_campaign.py)
+MAX_POOL_RESTARTS = 3  # worker pools that may break in a row, storing nothing, before giving up
 
 
 def evaluate_runs(
@@ -58,17 +77,20 @@ def evaluate_runs(
     for k, truth, meas, rng in sims:
         try:
             hist = est.run(scenario, meas, rng)
-            r = metrics.run_errors(hist, est.truth_state(truth, hist))
-            out.append((k, (r, hist.skipped), None))
+            out.append((k, (metrics.evaluate_run(est, hist, truth), hist.skipped), None))
         except Exception as exc:  # noqa: BLE001
             out.append((k, None, _short(exc)))
     return out
 
 
 def _store_results(store: CampaignStore, base_seed: int, results) -> list[int]:
-    """Write each run of ``results`` (from :func:`evaluate_runs`) to the store at once;
-    returns their indices."""
+    """Write each run of ``results`` (from :func:`evaluate_runs`) to the store at once, except
+    runs already stored (a chunk redone after an interrupt keeps what it had); returns their
+    indices."""
+    done = store.done()
     for k, res, error in results:
+        if k in done:
+            continue
         if res is None:
             store.save_failure(k, base_seed, error or "unknown error")
         else:
@@ -87,10 +109,15 @@ def evaluate_and_store(
     return _store_results(CampaignStore(Path(root)), base_seed, results)
 
 
-def _warm_up(scenario: Scenario, estimator_name: str, base_seed: int) -> None:
+def _warm_up(
+    scenario: Scenario, estimator_name: str, base_seed: int, con: Console | None = None
+) -> None:
     """Run one short run in this process before forking the workers, so that they inherit
     what it loaded (compiled kernels from numba's cache, lazily imported modules) instead of
-    each loading it again for every campaign. Best effort: a failure here changes nothing."""
+    each loading it again for every campaign. Says so when the kernels must be compiled first
+    (about 30 s, once per installation). Best effort: a failure here changes nothing."""
+    if con is not None and not kernels_compiled():
+        con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
     try:
         short = min(scenario.duration_s, 5.0)
         sc = scenario.with_updates(duration_s=short, steady_state_window_s=[0.0, short])
@@ -105,9 +132,39 @@ def _short(exc: BaseException) -> str:
     return f"{exc.__class__.__name__}: {exc}{where}"
 
 
-def _chunks(ks: list[int], size: int) -> Iterable[list[int]]:
-    for i in range(0, len(ks), size):
-        yield ks[i : i + size]
+def _chunks(todo: Iterable[int], size: int) -> list[list[int]]:
+    """Fixed chunks of ``size`` run indices (``[0..size-1], [size..2 size-1], ...``) that hold
+    a run still to do. A chunk is computed whole even if some of its runs are stored (they are
+    not written again), so a run always shares its batch with the same runs."""
+    todo = list(todo)
+    if not todo:
+        return []
+    end = max(todo) + 1
+    firsts = sorted({k - k % size for k in todo})
+    return [list(range(f, min(f + size, end))) for f in firsts]
+
+
+def _worker_init() -> None:
+    """Workers leave interrupts to the parent: Ctrl-C reaches the whole process group, and
+    the parent stops them itself (:func:`_stop_pool`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what has not started and terminate the workers now (SIGTERM, then SIGKILL
+    after 1 s): runs in flight are lost, stored runs are whole (written atomically)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    deadline = time.monotonic() + 1.0
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            proc.kill()
+            proc.join(1.0)
 
 
 def scenario_hash(scenario: Scenario) -> str:
@@ -125,8 +182,14 @@ def run_campaign(
     chunk_size: int | None = None,
     base_seed: int | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) a campaign and write summary.json; returns the summary."""
-    est = est_base.get(estimator_name)
+    """Run (or resume) a campaign and write summary.json; returns the summary.
+
+    The estimator is checked against the scenario before anything runs (InputError). On an
+    interrupt (:class:`Interrupted` or ``KeyboardInterrupt``) the workers are stopped, the
+    finished runs stay stored, and :class:`Interrupted` carries in ``kept`` what was kept and
+    how to resume.
+    """
+    est = est_base.get_for(estimator_name, scenario)
     if runs < 1:
         raise InputError("--runs must be at least 1")
     base_seed = scenario.montecarlo.seed if base_seed is None else base_seed
@@ -154,39 +217,31 @@ def run_campaign(
         )
     if todo:
         if chunk_size is None:
-            batched = hasattr(est, "run_batch")
-            chunk_size = max(1, min(128, -(-len(todo) // workers))) if batched else 1
-        chunks = list(_chunks(todo, chunk_size))
-        if getattr(est, "compiled", False) and workers > 1 and len(chunks) > 1 and not scheduler:
-            _warm_up(scenario, estimator_name, base_seed)
-        _execute(
-            scenario,
-            estimator_name,
-            base_seed,
-            chunks,
-            store,
-            workers,
-            scheduler,
-            con,
-            total=runs,
-            already=runs - len(todo),
-        )
+            chunk_size = BATCH_CHUNK if hasattr(est, "run_batch") else 1
+        chunks = _chunks(todo, chunk_size)
+        try:
+            if getattr(est, "compiled", False) and not scheduler:
+                _warm_up(scenario, estimator_name, base_seed, con)
+            _execute(
+                scenario, estimator_name, base_seed, chunks, store, workers, scheduler, con, runs
+            )
+        except (Interrupted, KeyboardInterrupt) as exc:
+            n = len({k for k in store.done() if k < runs})
+            kept = (
+                f"{n} of {runs} runs are stored in {store.root}; run the same command again "
+                "to finish the campaign (stored runs are kept, not redone)"
+            )
+            if isinstance(exc, Interrupted):
+                exc.kept = kept
+                raise
+            raise Interrupted(signal.SIGINT, kept) from exc
     summary = summarise(store, scenario, estimator_name, runs)
     io.write_json(summary, store.root / "summary.json")
     return summary
 
 
 def _execute(
-    scenario,
-    estimator_name,
-    base_seed,
-    chunks,
-    store,
-    workers,
-    scheduler,
-    con,
-    total: int,
-    already: int,
+    scenario, estimator_name, base_seed, chunks, store, workers, scheduler, con, runs: int
 ) -> None:
     columns = (
         "[progress.description]{task.description}",
@@ -195,29 +250,83 @@ def _execute(
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
+
+    def finished() -> int:  # stored or failed runs of this campaign
+        return len({k for k in store.done() if k < runs}) + sum(
+            1 for f in store.failures() if f["run"] < runs and f["run"] not in store.done()
+        )
+
     with Progress(*columns, console=con, transient=False) as prog:
-        task = prog.add_task(f"{scenario.name} / {estimator_name}", total=total, completed=already)
+        task = prog.add_task(
+            f"{scenario.name} / {estimator_name}", total=runs, completed=finished()
+        )
 
         def record(results) -> None:  # results computed elsewhere (Dask): store them here
-            prog.advance(task, len(_store_results(store, base_seed, results)))
+            _store_results(store, base_seed, results)
+            prog.update(task, completed=finished())
 
-        root = str(store.root.resolve())
         if scheduler:
             _execute_dask(scenario, estimator_name, base_seed, chunks, scheduler, record)
-        elif workers == 1 or len(chunks) == 1:
-            for ks in chunks:
-                done = evaluate_and_store(scenario, estimator_name, base_seed, ks, root)
-                prog.advance(task, len(done))
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                pending = {
+            _execute_local(
+                scenario,
+                estimator_name,
+                base_seed,
+                chunks,
+                store,
+                workers,
+                lambda: prog.update(task, completed=finished()),
+                con,
+            )
+
+
+def _execute_local(
+    scenario, estimator_name, base_seed, chunks, store, workers, progress: Callable, con
+) -> None:
+    """Compute ``chunks`` in worker processes, each storing its runs; replace a broken pool
+    (a worker killed) and redo its unfinished chunks, up to MAX_POOL_RESTARTS times in a row
+    without progress."""
+    root = str(store.root.resolve())
+    pending = list(chunks)
+    breaks = 0
+    while pending:
+        pool = ProcessPoolExecutor(
+            max_workers=max(1, min(workers, len(pending))), initializer=_worker_init
+        )
+        futures: dict[Future, list[int]] = {}
+        try:
+            for ks in pending:
+                futures[
                     pool.submit(evaluate_and_store, scenario, estimator_name, base_seed, ks, root)
-                    for ks in chunks
-                }
-                while pending:
-                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in finished:
-                        prog.advance(task, len(f.result()))
+                ] = ks
+            while futures:
+                # a short timeout keeps the parent responsive to signals
+                done, _ = wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
+                for f in done:
+                    ks = futures.pop(f)
+                    f.result()  # BrokenProcessPool if its worker died
+                    pending.remove(ks)
+                    breaks = 0
+                    progress()
+        except BrokenProcessPool:
+            breaks += 1
+            stored = store.done()
+            pending = [ks for ks in pending if not set(ks) <= stored]
+            progress()
+            con.print(
+                "a worker process died (killed, or out of memory): stored runs are kept, "
+                f"{sum(len(set(ks) - stored) for ks in pending)} runs still to do"
+            )
+            if breaks > MAX_POOL_RESTARTS:
+                raise RuntimeError(
+                    f"worker processes died {breaks} times in a row without storing a run "
+                    "(out of memory?); the stored runs are kept: run the same command again "
+                    "to resume, or use fewer --workers"
+                ) from None
+            continue
+        finally:
+            _stop_pool(pool)
+            store.remove_partial()
 
 
 def _execute_dask(
@@ -247,15 +356,21 @@ def collect(store: CampaignStore, runs: int) -> tuple[np.ndarray, dict[str, np.n
     ks = sorted(k for k in store.done() if k < runs)
     if not ks:
         return np.zeros(0), {}, {}
-    rs = [store.load_run(k) for k in ks]
+    loaded = [store.load(k) for k in ks]
+    rs = [r for r, _ in loaded]
     t = rs[0].t
-    errs = {key: np.stack([r.errors[key] for r in rs]) for key in rs[0].errors}
+    # every quantity any run stored (in the order first seen); a run without it (stored by an
+    # estimator path that does not compute it) is NaN there, never a KeyError
+    keys = list(dict.fromkeys(key for r in rs for key in r.errors))
+    nan = np.full(len(t), np.nan)
+    errs = {key: np.stack([r.errors.get(key, nan) for r in rs]) for key in keys}
     cons = {
         "nees": np.stack([r.nees for r in rs]),
         "nees_dof": rs[0].nees_dof,
         "nis": np.stack([r.nis for r in rs]),
         "nis_dof": np.stack([r.nis_dof for r in rs]),
         "runs": ks,
+        "diverged": np.array([bool(x.get("skipped_diverged", 0)) for _, x in loaded]),
     }
     return t, errs, cons
 
@@ -297,6 +412,7 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
             for k, v in per_run.items()
             if np.isfinite(v).any()
         }
+        summary["runs_diverged"] = int(cons["diverged"].sum())
         summary["nees"] = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
         summary["nis"] = metrics.consistency(cons["nis"], cons["nis_dof"], t, window)
     if failures:

@@ -88,7 +88,16 @@ class CampaignStore:
                     "code's: use another output folder (or delete its runs/ to recompute)",
                     str(self.root),
                 )
+        self.remove_partial()
         io.write_json(spec, spec_path)
+
+    def remove_partial(self) -> None:
+        """Delete temporary files of writes that a killed worker never finished (every write
+        goes to a hidden ``.NAME.*.tmp`` first and is renamed when whole: see
+        :func:`tumblenav.io.atomic_write`). Call only while no worker writes here."""
+        if self.runs_dir.is_dir():
+            for tmp in self.runs_dir.glob(".run_*.tmp"):
+                tmp.unlink(missing_ok=True)
 
     def done(self) -> set[int]:
         if not self.runs_dir.exists():
@@ -131,9 +140,15 @@ class CampaignStore:
         return [io.read_json(p) for p in sorted(self.runs_dir.glob("run_*.failed.json"))]
 
     def load_run(self, k: int) -> RunErrors:
+        return self.load(k)[0]
+
+    def load(self, k: int) -> tuple[RunErrors, dict[str, Any]]:
+        """Run k's errors and its extras (``skipped_*`` counts, ...), as :meth:`save_run`
+        wrote them."""
         with np.load(self.run_path(k)) as z:
             errors = {key[4:]: z[key] for key in z.files if key.startswith("err_")}
-            return RunErrors(
+            extra = {key[6:]: z[key].item() for key in z.files if key.startswith("extra_")}
+            r = RunErrors(
                 t=z["t"],
                 errors=errors,
                 nees=z["nees"],
@@ -141,3 +156,4 @@ class CampaignStore:
                 nis=z["nis"],
                 nis_dof=z["nis_dof"],
             )
+        return r, extra

@@ -156,6 +156,11 @@ class Estimator(Protocol):
     needs: str  # what measurements it consumes, for `tumblenav estimators`
     description: str
 
+    def check(self, scenario: Any) -> None:
+        """Raise :class:`InputError` (one line: what the estimator needs and what the scenario
+        has) if this estimator cannot run on ``scenario``; called before any work starts."""
+        ...
+
     def run(
         self, scenario: Any, measurements: Any, rng: np.random.Generator
     ) -> EstimateHistory: ...
@@ -167,6 +172,14 @@ class Estimator(Protocol):
 
 
 _REGISTRY: dict[str, Callable[[], Estimator]] = {}
+
+# Estimators a built-in scenario names that do not exist yet: a plain word for the user instead
+# of "unknown estimator".
+PLANNED = {
+    "ekf-pose": "Chang 2021's estimator (ekf-pose: image features, q-method and EKF) is not "
+    "implemented yet; this scenario can be simulated (tumblenav simulate), and estimators that "
+    "run on stereo tracks can be tried with -e (see tumblenav estimators)",
+}
 
 
 def register(name: str) -> Callable[[Callable[[], Estimator]], Callable[[], Estimator]]:
@@ -189,6 +202,8 @@ def available() -> dict[str, Estimator]:
 
 def get(name: str) -> Estimator:
     _load_builtin()
+    if name not in _REGISTRY and name in PLANNED:
+        raise InputError(PLANNED[name])
     if name not in _REGISTRY:
         raise InputError(
             f"unknown estimator '{name}' (available: {', '.join(sorted(_REGISTRY))})", "--estimator"
@@ -214,3 +229,11 @@ def parse_tuning(raw: dict[str, Any] | None, model: type[TuningT]) -> TuningT:
 def check_names(names: Sequence[str]) -> None:
     for n in names:
         get(n)
+
+
+def get_for(name: str, scenario: Any) -> Estimator:
+    """The estimator ``name``, checked against ``scenario`` (:meth:`Estimator.check`): an
+    :class:`InputError` before any work if it cannot run there."""
+    est = get(name)
+    est.check(scenario)
+    return est

@@ -277,12 +277,16 @@ class DepthEKF:
     needs = "depth point clouds (depth sensor) and a target model with known rectangles"
     description = "Yu 2019: RANSAC rectangles -> coarse pose -> EKF with mass-centre offset"
 
-    def run(self, scenario: Any, meas: Any, rng: np.random.Generator) -> EstimateHistory:
+    def check(self, scenario: Any) -> None:
         if scenario.sensor.kind != "depth":
             raise InputError(
                 f"ekf-depth needs a depth sensor; scenario {scenario.name} has a "
                 f"{scenario.sensor.kind} sensor"
             )
+        base_parse_tuning(scenario.estimator.tuning, DepthTuning)
+
+    def run(self, scenario: Any, meas: Any, rng: np.random.Generator) -> EstimateHistory:
+        self.check(scenario)
         tun = base_parse_tuning(scenario.estimator.tuning, DepthTuning)
         from tumblenav.simulation import target_model
 

@@ -1641,7 +1641,7 @@ class HuEKF:
             else "Hu 2024's EKF without DPACF (principal frame free, Aghili & Parsa 2009)"
         )
 
-    def _check(self, scenario: Any) -> None:
+    def check(self, scenario: Any) -> None:
         if scenario.sensor.kind != "stereo":
             raise InputError(
                 f"{self.name} needs a stereo sensor; scenario {scenario.name} has "
@@ -1650,11 +1650,12 @@ class HuEKF:
         parse_tuning(scenario.estimator.tuning)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
-        self._check(scenario)
+        self.check(scenario)
         res = run_filter(scenario, [measurements], self.use_dpacf)
         fe = res["frontend"]
         skipped = {k: int(v[0]) for k, v in fe.skipped.items()}
         skipped["gated_out"] = int(res["rejected"][0])
+        skipped["diverged"] = int(res["diverged"][0])
         skipped["frame_flips"] = int(res["frame_flips"][0])
         return EstimateHistory(
             t=res["t"],
@@ -1682,7 +1683,7 @@ class HuEKF:
         """Many runs at once (vectorised); returns one (RunErrors, skipped) per run."""
         from tumblenav.metrics import RunErrors, attitude_error_rad, error_magnitudes
 
-        self._check(scenario)
+        self.check(scenario)
         res = run_filter(
             scenario,
             measurements,

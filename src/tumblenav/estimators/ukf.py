@@ -293,6 +293,11 @@ def check_scenario(scenario: Any) -> None:
             "Kabir 2025's UKF assumes an inertially fixed chaser (Sec. 2.1): set chaser.orbit: "
             f"null (scenario {scenario.name} has an orbit)"
         )
+    if scenario.sensor.rig != "parallel":
+        raise InputError(
+            "Kabir 2025's observation model (eq. 16-27) needs a parallel stereo rig; scenario "
+            f"{scenario.name} has a {scenario.sensor.rig} rig"
+        )
 
 
 def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
@@ -934,6 +939,10 @@ class KabirUKF:
             if variant == "additive"
             else "Kabir 2025's UKF with a multiplicative attitude error (USQUE-style, 23-dim)"
         )
+
+    def check(self, scenario: Any) -> None:
+        check_scenario(scenario)
+        parse_tuning(scenario.estimator.tuning)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
         check_scenario(scenario)

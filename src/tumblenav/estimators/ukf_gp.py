@@ -166,6 +166,10 @@ class KabirUKFGP:
         "through long occlusions"
     )
 
+    def check(self, scenario: Any) -> None:
+        ukf.check_scenario(scenario)
+        ukf.parse_tuning(scenario.estimator.tuning, model=UKFGPTuning)
+
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
         ukf.check_scenario(scenario)
         tun = ukf.parse_tuning(scenario.estimator.tuning, model=UKFGPTuning)

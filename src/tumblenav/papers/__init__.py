@@ -34,6 +34,6 @@ def reproduce(
 
         return kabir2025.reproduce(Path(output), runs=runs, workers=workers, console=console)
     raise InputError(
-        f"reproduce {paper} is not implemented yet (its estimator comes with its "
-        "own issue); available: hu2024, yu2019, kabir2025"
+        f"reproduce {paper}: Chang 2021's estimator (ekf-pose) is not implemented yet, so its "
+        "results cannot be reproduced; available now: hu2024, yu2019, kabir2025"
     )
