@@ -223,8 +223,10 @@ def reproduce(
 ) -> None:
     """Reproduce a paper's simulation section: figures and summary.json with its values."""
     from tumblenav.papers import reproduce as rep
+    from tumblenav.papers.table import print_comparison
 
     summary = rep(paper, output, runs=runs, workers=workers, console=err)
+    print_comparison(summary, out)
     out.print(f"{len(summary.get('cases', []))} cases; results in {output}")
 
 

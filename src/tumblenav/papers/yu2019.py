@@ -193,11 +193,10 @@ def _skipped(store: CampaignStore, ks: list[int]) -> dict[str, int]:
     """Updates the filter skipped, by reason, summed over runs ``ks`` (stored as extras)."""
     total: dict[str, int] = {}
     for k in ks:
-        with np.load(store.run_path(k)) as z:
-            for key in z.files:
-                if key.startswith("extra_skipped_"):
-                    name = key[len("extra_skipped_") :]
-                    total[name] = total.get(name, 0) + int(z[key])
+        for key, value in store.load(k)[1].items():
+            if key.startswith("skipped_"):
+                name = key[len("skipped_") :]
+                total[name] = total.get(name, 0) + int(value)
     return total
 
 

@@ -1,0 +1,294 @@
+"""The promises around the numbers: refusals before any work, one evaluation path, results
+that say when they are bad, the small options a user expects (--version, --seed, --no-plots)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+from rich.console import Console
+
+from tumblenav import cli, io, metrics, pipeline
+from tumblenav.campaign.runner import collect, summarise
+from tumblenav.campaign.store import CampaignStore, run_seed
+from tumblenav.estimators import base as est_base
+from tumblenav.metrics import RunErrors
+from tumblenav.scenario import load_scenario, scenario_to_yaml
+from tumblenav.simulation import run_streams, simulate
+
+
+def run(args, capsys) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as ei:
+        cli.main([str(a) for a in args])
+    cap = capsys.readouterr()
+    return int(ei.value.code), cap.out, " ".join(cap.err.split())
+
+
+def write(tmp_path: Path, name: str, scenario) -> Path:
+    p = tmp_path / f"{name}.yaml"
+    p.write_text(scenario_to_yaml(scenario))
+    return p
+
+
+def short_hu(duration: float = 40.0):
+    return load_scenario("hu2024").with_updates(
+        duration_s=duration,
+        steady_state_window_s=[duration - 10.0, duration],
+        occlusion={"windows": [{"start_s": 20.0, "end_s": 25.0}]},
+    )
+
+
+def short_kabir(duration: float = 60.0):
+    return load_scenario("kabir2025").with_updates(
+        duration_s=duration, **{"occlusion.loss_from_s": None}
+    )
+
+
+# --- refuse what cannot work, before any work -------------------------------------------------
+
+
+def _unrunnable(tmp_path: Path) -> list[tuple[Path, str, str]]:
+    kab = load_scenario("kabir2025")
+    return [
+        (
+            write(
+                tmp_path,
+                "convergent",
+                kab.with_updates(**{"sensor.rig": "convergent", "sensor.toe_in_deg": 2.0}),
+            ),
+            "ukf",
+            "parallel stereo rig",
+        ),
+        (write(tmp_path, "hu", load_scenario("hu2024")), "ekf-depth", "needs a depth sensor"),
+        (write(tmp_path, "yu", load_scenario("yu2019")), "ekf-dpacf", "needs a stereo sensor"),
+        (
+            write(tmp_path, "orbiting", kab.with_updates(**{"chaser.orbit": {"radius_m": 7e6}})),
+            "ukf-gp",
+            "inertially fixed chaser",
+        ),
+    ]
+
+
+@pytest.mark.parametrize("command", ["montecarlo", "estimate"])
+def test_an_estimator_that_cannot_run_is_refused_before_any_work(command, tmp_path, capsys):
+    for scenario, estimator, why in _unrunnable(tmp_path):
+        out = tmp_path / f"out_{estimator}"
+        args = [command, scenario, "-e", estimator, "-o", out]
+        if command == "montecarlo":
+            args += ["--runs", 2, "--workers", 1]
+        code, _, err = run(args, capsys)
+        assert code == 2, (estimator, err)
+        assert why in err and "Traceback" not in err
+        assert not out.exists(), "work started before the refusal"
+
+
+def test_a_repeated_option_is_refused(tmp_path, capsys):
+    code, _, err = run(
+        ["montecarlo", "hu2024", "-e", "ekf-dpacf", "-e", "ekf-baseline", "-o", tmp_path / "o"],
+        capsys,
+    )
+    assert code == 2 and "given more than once" in err
+    assert not (tmp_path / "o").exists()
+    code, _, err = run(["estimate", "hu2024", "--seed", 1, "--seed", 2, "-o", tmp_path], capsys)
+    assert code == 2 and "--seed" in err
+
+
+def test_chang2021_says_plainly_that_its_estimator_does_not_exist_yet(tmp_path, capsys):
+    code, _, err = run(["estimate", "chang2021", "-o", tmp_path / "e"], capsys)
+    assert code == 2 and "not implemented yet" in err and "--estimator" not in err
+    code, _, err = run(["reproduce", "chang2021", "-o", tmp_path / "r"], capsys)
+    assert code == 2 and "not implemented yet" in err
+
+
+# --- measurements checked against the scenario ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def hu_measurements(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("sim")
+    sc = short_hu()
+    truth, meas = simulate(sc, run_seed(5, 0))
+    io.write_netcdf(meas.to_dataset(sc.name), folder / "measurements.nc")
+    return folder
+
+
+def test_measurements_of_another_sensor_or_rig_are_refused(hu_measurements, tmp_path, capsys):
+    # hu2024's stereo tracks under the chang2021 scenario (another rig): not relabelled
+    code, _, err = run(
+        [
+            "estimate",
+            "chang2021",
+            "-e",
+            "ekf-dpacf",
+            "--measurements",
+            hu_measurements,
+            "-o",
+            tmp_path / "a",
+        ],
+        capsys,
+    )
+    assert code == 2 and "another stereo rig" in err and "baseline" in err
+    assert not (tmp_path / "a").exists()
+    # stereo tracks under a depth scenario: a clear line, not an AttributeError
+    code, _, err = run(
+        ["estimate", "yu2019", "--measurements", hu_measurements, "-o", tmp_path / "b"], capsys
+    )
+    assert code == 2 and "holds stereo measurements" in err and "depth sensor" in err
+
+
+def test_measurements_without_pixel_noise_are_refused(hu_measurements, tmp_path, capsys):
+    ds = xr.open_dataset(hu_measurements / "measurements.nc").load()
+    del ds.attrs["noise_px"]
+    folder = tmp_path / "m"
+    io.write_netcdf(ds, folder / "measurements.nc")
+    sc = write(tmp_path, "short", short_hu())
+    code, _, err = run(
+        ["estimate", sc, "-e", "ekf-dpacf", "--measurements", folder, "-o", tmp_path / "o"],
+        capsys,
+    )
+    assert code == 2 and "noise_px" in err
+
+
+# --- one evaluation path -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "estimator, scenario",
+    [("ekf-dpacf", short_hu), ("ekf-baseline", short_hu), ("ukf", short_kabir)],
+)
+def test_batch_and_single_run_paths_store_the_same_quantities(estimator, scenario):
+    """The batched path and its per-run fallback must store the same fields: a campaign mixing
+    both once broke for good on resume (KeyError 'dpacf_attitude_deg')."""
+    sc = scenario()
+    est = est_base.get(estimator)
+    ss = run_seed(sc.montecarlo.seed, 0)
+    truth, meas = simulate(sc, ss)
+    hist = est.run(sc, meas, run_streams(ss)["estimator"])
+    single = metrics.evaluate_run(est, hist, truth)
+    ((batch, skipped),) = est.run_batch(sc, [meas], [run_streams(ss)["estimator"]], [truth])
+    assert sorted(single.errors) == sorted(batch.errors)
+    assert sorted(hist.skipped) == sorted(skipped)
+    for key in single.errors:  # and the same values, where both are defined
+        a, b = single.errors[key], batch.errors[key]
+        both = np.isfinite(a) & np.isfinite(b)
+        assert np.array_equal(np.isfinite(a), np.isfinite(b)), key
+        np.testing.assert_allclose(a[both], b[both], rtol=1e-6, atol=1e-9, err_msg=key)
+
+
+def test_the_store_reads_every_run_it_wrote_whatever_its_fields(tmp_path):
+    store = CampaignStore(tmp_path / "mc")
+    store.open({"scenario": "x", "estimator": "y", "base_seed": 1, "scenario_hash": "h"})
+    t = np.linspace(0.0, 10.0, 11)
+    for k, keys in enumerate((["attitude_deg", "dpacf_attitude_deg"], ["attitude_deg"])):
+        r = RunErrors(
+            t,
+            {key: np.full(11, k + 1.0) for key in keys},
+            np.ones(11),
+            3,
+            np.ones(11),
+            np.full(11, 2.0),
+        )
+        store.save_run(k, 1, r, {})
+    _, errs, _ = collect(store, 2)
+    assert set(errs) == {"attitude_deg", "dpacf_attitude_deg"}
+    assert np.isnan(errs["dpacf_attitude_deg"][1]).all()
+    s = summarise(store, short_hu(10.0), "ekf-dpacf", 2)
+    assert s["runs"] == 2 and s["rmse"]["dpacf_attitude_deg"] == pytest.approx(1.0)
+
+
+# --- results that say when they are bad --------------------------------------------------------
+
+
+def test_a_summary_outside_its_bounds_says_so():
+    summary = {
+        "scenario": "s",
+        "estimator": "e",
+        "runs": 20,
+        "window_s": [0.0, 1.0],
+        "rmse": {"attitude_deg": 62.0},
+        "nees": {"mean": 2.9e3, "dof": 20, "bounds95": [0.9, 1.1], "inside_fraction": 0.0},
+        "nis": {"mean": 1.0, "dof": 6, "bounds95": [0.9, 1.1], "inside_fraction": 1.0},
+        "runs_failed": 2,
+        "runs_without_estimate": 3,
+        "runs_diverged": 1,
+    }
+    warnings = pipeline.assess(summary)
+    text = " ".join(warnings)
+    assert "NEES/dof 2.9e+03 is above its 95% bounds" in text and "over-confident" in text
+    assert "NIS" not in text  # inside its bounds: no word
+    assert "3 of 20 runs produced no estimate" in text
+    assert "1 of 20 runs diverged" in text and "2 run(s) failed" in text
+    buf = Console(file=__import__("io").StringIO(), width=200)
+    pipeline.print_summary({**summary, "warnings": warnings}, buf)
+    shown = buf.file.getvalue()
+    assert "(above bounds)" in shown and "over-confident" in shown
+    assert (
+        pipeline.assess(
+            {
+                **summary,
+                "nees": {**summary["nees"], "mean": 1.0},
+                "runs_failed": 0,
+                "runs_without_estimate": 0,
+                "runs_diverged": 0,
+            }
+        )
+        == []
+    )
+
+
+def test_estimate_writes_its_warnings_and_no_figure_with_no_plots(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(pipeline, "kernels_compiled", lambda: False)
+    sc = write(tmp_path, "short", short_hu())
+    out = tmp_path / "e"
+    code, _, err = run(["estimate", sc, "-e", "ekf-dpacf", "--no-plots", "-o", out], capsys)
+    assert code == 0, err
+    assert "compiling the numerical kernels" in err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["warnings"] == pipeline.assess(s)
+    assert not list(out.glob("*.png"))
+
+
+def test_montecarlo_seed_and_no_plots(tmp_path, capsys):
+    sc = write(tmp_path, "short", short_hu(30.0))
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out, seed in ((a, 11), (b, 12)):
+        code, _, err = run(
+            [
+                "montecarlo",
+                sc,
+                "-e",
+                "ekf-dpacf",
+                "--runs",
+                2,
+                "--workers",
+                1,
+                "--seed",
+                seed,
+                "--no-plots",
+                "-o",
+                out,
+            ],
+            capsys,
+        )
+        assert code == 0, err
+        assert io.read_json(out / "campaign.json")["base_seed"] == seed
+        assert not list(out.glob("*.png"))
+    ra, rb = (json.loads((p / "summary.json").read_text())["rmse"] for p in (a, b))
+    assert ra != rb  # other seeds, other runs
+
+
+def test_version(capsys):
+    code, out, _ = run(["--version"], capsys)
+    assert code == 0 and out.startswith("tumblenav ")
+
+
+def test_an_exit_status_from_typer_is_passed_on(monkeypatch):
+    """typer returns 130 (its own KeyboardInterrupt handling) instead of raising: main used to
+    turn it into exit 0."""
+    monkeypatch.setattr(cli, "app", lambda **kw: 130)
+    with pytest.raises(SystemExit) as ei:
+        cli.main(["demo"])
+    assert ei.value.code == 130
