@@ -225,7 +225,15 @@ def reproduce(
     from tumblenav.papers import reproduce as rep
     from tumblenav.papers.table import print_comparison
 
-    summary = rep(paper, output, runs=runs, workers=workers, console=err)
+    try:
+        summary = rep(paper, output, runs=runs, workers=workers, console=err)
+    except Interrupted as exc:
+        inner = f" ({exc.kept})" if exc.kept else ""
+        exc.kept = (
+            f"the campaigns finished so far are stored under {output}{inner}; run the same "
+            "command again to resume"
+        )
+        raise
     print_comparison(summary, out)
     out.print(f"{len(summary.get('cases', []))} cases; results in {output}")
 
