@@ -81,39 +81,78 @@ class Truth:
         return self.features_L @ np.swapaxes(R_CL, -1, -2)  # (t,N,3): R_CL(t) p_n(t)
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
-        n_feat = self.features_T.shape[0]
+        from tumblenav.io import with_coordinates
+
         ds = xr.Dataset(
             {
-                "q_TI": (("time", "quat"), self.q_TI, _a("1", "target attitude, maps I into T")),
+                "q_TI": (
+                    ("time", "quat"),
+                    self.q_TI,
+                    _a("1", "target attitude: maps I into T; continuous in time (w may be < 0)"),
+                ),
                 "omega_TI_T": (
                     ("time", "xyz"),
                     self.omega_TI_T,
-                    _a("rad/s", "rate of T wrt I, in T"),
+                    _a("rad/s", "rate of T relative to I, in T"),
                 ),
-                "r_L": (("time", "xyz"), self.r_L, _a("m", "target CM relative to chaser, in L")),
-                "v_L": (("time", "xyz"), self.v_L, _a("m/s", "relative velocity in rotating L")),
-                "q_LI": (("time", "quat"), self.q_LI, _a("1", "LVLH attitude, maps I into L")),
+                "r_L": (
+                    ("time", "xyz"),
+                    self.r_L,
+                    _a("m", "position of the target mass centre relative to the chaser, in L"),
+                ),
+                "v_L": (
+                    ("time", "xyz"),
+                    self.v_L,
+                    _a(
+                        "m/s",
+                        "velocity of the target mass centre relative to the chaser, seen from "
+                        "the rotating L, in L",
+                    ),
+                ),
+                "q_LI": (
+                    ("time", "quat"),
+                    self.q_LI,
+                    _a("1", "LVLH attitude: maps I into L (identity without an orbit)"),
+                ),
                 "q_CL": (
                     ("time", "quat"),
                     self.q_CL,
-                    _a("1", "stereo rig attitude, maps L into C"),
+                    _a("1", "attitude of the stereo rig or depth sensor: maps L into C"),
                 ),
-                "chaser_r_I": (("time", "xyz"), self.chaser_r_I, _a("m", "chaser position in I")),
-                "chaser_v_I": (("time", "xyz"), self.chaser_v_I, _a("m/s", "chaser velocity in I")),
-                "features_T": (("feature", "xyz"), self.features_T, _a("m", "feature points in T")),
-                "normals_T": (("feature", "xyz"), self.normals_T, _a("1", "feature normals in T")),
-                "inertia_T": (("row", "col"), self.inertia_T, _a("kg m^2", "inertia in T")),
+                "chaser_r_I": (
+                    ("time", "xyz"),
+                    self.chaser_r_I,
+                    _a("m", "chaser position in I (zeros without an orbit)"),
+                ),
+                "chaser_v_I": (
+                    ("time", "xyz"),
+                    self.chaser_v_I,
+                    _a("m/s", "chaser velocity in I (zeros without an orbit)"),
+                ),
+                "features_T": (
+                    ("feature", "xyz"),
+                    self.features_T,
+                    _a("m", "feature points relative to the target mass centre, in T"),
+                ),
+                "normals_T": (
+                    ("feature", "xyz"),
+                    self.normals_T,
+                    _a("1", "unit outward surface normals at the features, in T"),
+                ),
+                "inertia_T": (
+                    ("row", "col"),
+                    self.inertia_T,
+                    _a("kg m^2", "inertia tensor of the target about its mass centre, in T"),
+                ),
                 "mass_centre_offset_T": (
                     ("xyz",),
                     self.mass_centre_offset_T,
-                    _a("m", "CM offset b"),
+                    _a(
+                        "m",
+                        "mass-centre offset b: the target mass centre relative to the model "
+                        "origin, in T (Yu 2019)",
+                    ),
                 ),
-            },
-            coords={
-                "time": ("time", self.t, {"units": "s"}),
-                "quat": ["x", "y", "z", "w"],
-                "xyz": ["x", "y", "z"],
-                "feature": np.arange(n_feat),
             },
             attrs={
                 "title": "tumblenav truth",
@@ -123,11 +162,13 @@ class Truth:
                 "C stereo rig (x baseline, y boresight); T target principal axes",
             },
         )
-        return ds
+        return with_coordinates(ds, time=self.t, feature=np.arange(len(self.features_T)))
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> Truth:
-        g = {k: np.asarray(ds[k].values, dtype=float) for k in ds.data_vars}
+        """The truth of a ``truth.nc`` dataset (variables by name; others are ignored)."""
+        names = [k for k in cls.__dataclass_fields__ if k != "t"]
+        g = {k: np.asarray(ds[k].values, dtype=float) for k in names}
         return cls(t=np.asarray(ds["time"].values, dtype=float), **g)
 
 
@@ -149,39 +190,49 @@ class StereoMeasurements:
     noise_px: float
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
+        from tumblenav.io import with_coordinates
+
         rig = self.rig
         cams = (rig.left, rig.right)
-        return xr.Dataset(
+        ds = xr.Dataset(
             {
                 "uv": (
                     ("time", "camera", "feature", "pixel"),
                     self.uv,
-                    _a("px", "image coordinates; NaN where unobserved"),
+                    _a(
+                        "px",
+                        "measured image coordinates of the features (pinhole model plus "
+                        "Gaussian noise); NaN where unobserved",
+                    ),
                 ),
                 "observed": (
                     ("time", "camera", "feature"),
                     self.observed.astype(np.int8),
-                    _a("1", "1 if the feature is measured by that camera"),
+                    _a(
+                        "1",
+                        "1 if that camera measured the feature (in front of it, inside the "
+                        "image, not occluded), else 0",
+                    ),
                 ),
                 "q_CL": (
                     ("time", "quat"),
                     self.q_CL,
-                    _a("1", "rig attitude, maps L into C (known)"),
+                    _a("1", "rig attitude: maps L into C (known to the chaser)"),
                 ),
                 "q_LI": (
                     ("time", "quat"),
                     self.q_LI,
-                    _a("1", "LVLH attitude, maps I into L (known)"),
+                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
                 ),
                 "R_CkC": (
                     ("camera", "row", "col"),
                     np.stack([c.R_CkC for c in cams]),
-                    _a("1", "rig frame into camera frame"),
+                    _a("1", "rotation from the rig frame C into the camera frame"),
                 ),
                 "p_CkinC": (
                     ("camera", "xyz"),
                     np.stack([c.p_CkinC for c in cams]),
-                    _a("m", "camera centre in rig frame"),
+                    _a("m", "camera centre in the rig frame C"),
                 ),
                 "focal_px": (
                     ("camera",),
@@ -191,21 +242,13 @@ class StereoMeasurements:
                 "principal_point_px": (
                     ("camera", "pixel"),
                     np.array([c.principal_point_px for c in cams], dtype=float),
-                    _a("px", "principal point"),
+                    _a("px", "principal point (cu, cv)"),
                 ),
                 "resolution_px": (
                     ("camera", "pixel"),
                     np.array([c.resolution_px for c in cams], dtype=float),
-                    _a("px", "image size"),
+                    _a("px", "image size (W, H)"),
                 ),
-            },
-            coords={
-                "time": ("time", self.t, {"units": "s"}),
-                "camera": ["left", "right"],
-                "feature": np.arange(self.uv.shape[2]),
-                "pixel": ["u", "v"],
-                "quat": ["x", "y", "z", "w"],
-                "xyz": ["x", "y", "z"],
             },
             attrs={
                 "title": "tumblenav stereo measurements",
@@ -217,6 +260,7 @@ class StereoMeasurements:
                 "u = cu + f x/y, v = cv + f z/y",
             },
         )
+        return with_coordinates(ds, time=self.t, feature=np.arange(self.uv.shape[2]))
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
@@ -423,26 +467,30 @@ class DepthMeasurements:
     range_noise_m: float
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
-        return xr.Dataset(
+        from tumblenav.io import with_coordinates
+
+        ds = xr.Dataset(
             {
                 "points": (
                     ("time", "ray", "xyz"),
                     self.points,
-                    _a("m", "point cloud in the sensor frame S; NaN where no return"),
+                    _a("m", "the returns of each scan in the sensor frame S; NaN where none"),
                 ),
                 "observed": (
                     ("time", "ray"),
                     self.observed.astype(np.int8),
-                    _a("1", "1 if the ray returned a point"),
+                    _a("1", "1 for a return, 0 for padding"),
                 ),
-                "q_CL": (("time", "quat"), self.q_CL, _a("1", "sensor attitude, maps L into S")),
-                "q_LI": (("time", "quat"), self.q_LI, _a("1", "LVLH attitude, maps I into L")),
-            },
-            coords={
-                "time": ("time", self.t, {"units": "s"}),
-                "ray": np.arange(self.points.shape[1]),
-                "xyz": ["x", "y", "z"],
-                "quat": ["x", "y", "z", "w"],
+                "q_CL": (
+                    ("time", "quat"),
+                    self.q_CL,
+                    _a("1", "sensor attitude: maps L into S (known to the chaser)"),
+                ),
+                "q_LI": (
+                    ("time", "quat"),
+                    self.q_LI,
+                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
+                ),
             },
             attrs={
                 "title": "tumblenav depth measurements",
@@ -451,6 +499,26 @@ class DepthMeasurements:
                 "fov_rad": self.fov_rad,
                 "range_noise_m": self.range_noise_m,
             },
+        )
+        return with_coordinates(ds, time=self.t, ray=np.arange(self.points.shape[1]))
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> DepthMeasurements:
+        """The clouds of a depth ``measurements.nc`` dataset; InputError if a variable or a
+        global attribute is missing."""
+        variables = ("points", "observed", "q_CL", "q_LI")
+        missing = [k for k in variables if k not in ds.variables]
+        missing += [f"attribute {k}" for k in ("fov_rad", "range_noise_m") if k not in ds.attrs]
+        if missing:
+            raise InputError(f"depth measurements: missing {', '.join(missing)}")
+        return cls(
+            t=np.asarray(ds["time"].values, dtype=float),
+            points=np.asarray(ds["points"].values, dtype=float),
+            observed=np.asarray(ds["observed"].values).astype(bool),
+            q_CL=np.asarray(ds["q_CL"].values, dtype=float),
+            q_LI=np.asarray(ds["q_LI"].values, dtype=float),
+            fov_rad=float(ds.attrs["fov_rad"]),
+            range_noise_m=float(ds.attrs["range_noise_m"]),
         )
 
 
