@@ -193,7 +193,11 @@ def run_estimate(
                 hist,
                 x_true,
                 output / "errors.png",
-                f"{scenario.name} / {estimator}: errors and +-3 sigma",
+                f"{scenario.name} / {estimator}: errors and ±3σ",
+                # the scenario's occlusions are the simulated run's; a user's data have their
+                # own gaps, which the figure finds in the history
+                occlusions=figures.occlusion_windows(scenario) if measurements is None else (),
+                window=scenario.window_s,
             )
     if not np.isfinite(hist.x).any():
         summary["note"] = (
