@@ -34,19 +34,26 @@ def main() -> None:
     h_drift = np.max(np.linalg.norm(H_I - H_I[0], axis=1)) / np.linalg.norm(H_I[0])
     wj = dyn.jacobi_omega(I, [0.1, 0.1, 0.1], t)
     jac = np.max(np.abs(wj - w)) / np.linalg.norm([0.1, 0.1, 0.1])
-    print(f"3000 s: energy drift {e_drift:.2e}, momentum drift {h_drift:.2e}, "
-          f"vs Jacobi elliptic {jac:.2e} (relative)")
+    print(
+        f"3000 s: energy drift {e_drift:.2e}, momentum drift {h_drift:.2e}, "
+        f"vs Jacobi elliptic {jac:.2e} (relative)"
+    )
     # CW closed form vs nonlinear truth, hu2024
     s = load_scenario("hu2024")
     truth, _ = simulate(s, 0)
-    r_cw, _ = dyn.cw_propagate(s.target.r0_L_m, s.target.v0_L_m_s,
-                               s.chaser.orbit.mean_motion_rad_s, truth.t)
+    r_cw, _ = dyn.cw_propagate(
+        s.target.r0_L_m, s.target.v0_L_m_s, s.chaser.orbit.mean_motion_rad_s, truth.t
+    )
     cw = np.max(np.linalg.norm(r_cw - truth.r_L, axis=1))
     rng = np.linalg.norm(truth.r_L, axis=1)
-    print(f"hu2024: CW vs nonlinear max {cw * 1e3:.3f} mm over 200 s; range {rng.min():.1f} to "
-          f"{rng.max():.1f} m (final {rng[-1]:.1f} m)")
-    print(f"polhode_max_err_s={worst:.2e} energy_drift={e_drift:.2e} momentum_drift={h_drift:.2e} "
-          f"cw_vs_nonlinear_m={cw:.2e}")
+    print(
+        f"hu2024: CW vs nonlinear max {cw * 1e3:.3f} mm over 200 s; range {rng.min():.1f} to "
+        f"{rng.max():.1f} m (final {rng[-1]:.1f} m)"
+    )
+    print(
+        f"polhode_max_err_s={worst:.2e} energy_drift={e_drift:.2e} momentum_drift={h_drift:.2e} "
+        f"cw_vs_nonlinear_m={cw:.2e}"
+    )
 
 
 if __name__ == "__main__":

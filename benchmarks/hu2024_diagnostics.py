@@ -34,6 +34,7 @@ import warnings
 import numpy as np
 from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
+from tumblenav import evaluation
 from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import ekf_dpacf as hu
@@ -105,7 +106,8 @@ def main() -> None:
         return
     sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in ks]
     truths = [t for t, _ in sims]
-    res = hu.run_filter(sc, [m for _, m in sims], True, truths=truths, nees_every=10)
+    res = hu.run_filter(sc, [m for _, m in sims], True)
+    res["x_true"], res["err"] = evaluation.error_states(hu.histories(res, sc), truths)
     fe, t = res["frontend"], res["t"]
     if args.what == "g":  # the G attitude of each epoch against the truth's G
         v = np.full(fe.R_GI.shape[:2], np.nan)

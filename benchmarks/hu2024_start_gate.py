@@ -19,6 +19,7 @@ import argparse
 import numpy as np
 from _tuning import with_tuning  # noqa: I001 (benchmarks/, on sys.path when run)
 
+from tumblenav import evaluation
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import ekf_dpacf as hu
 from tumblenav.scenario import load_scenario
@@ -41,7 +42,10 @@ def main() -> None:
     for s0 in range(0, args.runs, args.batch):
         ks = range(s0, min(args.runs, s0 + args.batch))
         sims = [simulate(sc, run_seed(sc.montecarlo.seed, k)) for k in ks]
-        res = hu.run_filter(sc, [m for _, m in sims], True, truths=[t for t, _ in sims])
+        res = hu.run_filter(sc, [m for _, m in sims], True)
+        res["x_true"], res["err"] = evaluation.error_states(
+            hu.histories(res, sc), [t for t, _ in sims]
+        )
         t = res["t"]
         w = np.flatnonzero((t >= t0) & (t <= t1))
         starts += [t[k] if k >= 0 else np.inf for k in res["k0"]]

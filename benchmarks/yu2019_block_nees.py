@@ -18,6 +18,7 @@ import numpy as np
 
 from tumblenav.campaign.runner import run_seed, run_streams
 from tumblenav.estimators import ekf_depth as D
+from tumblenav.evaluation import alignment
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
@@ -48,7 +49,7 @@ def main() -> None:
         truth, meas = simulate(sc, ss)
         est = D.DepthEKF()
         hist = est.run(sc, meas, run_streams(ss)["estimator"])
-        dx = hist.layout.boxminus(est.truth_state(truth, hist), hist.x)
+        dx = hist.layout.boxminus(alignment.truth_state(truth, hist), hist.x)
         win = np.flatnonzero((hist.t >= 300.0) & np.all(np.isfinite(dx), axis=1))
         row = {"full": float(np.mean([block_nees(dx[k], hist.P[k], slice(0, 20)) for k in win]))}
         for name, sel in BLOCKS.items():

@@ -11,11 +11,11 @@ import pytest
 import xarray as xr
 from rich.console import Console
 
-from tumblenav import cli, io, metrics, pipeline
+from tumblenav import cli, evaluation, io, pipeline
 from tumblenav.campaign.runner import collect, summarise
 from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.estimators import base as est_base
-from tumblenav.metrics import RunErrors
+from tumblenav.evaluation.metrics import RunErrors
 from tumblenav.scenario import load_scenario, scenario_to_yaml
 from tumblenav.simulation import run_streams, simulate
 
@@ -160,17 +160,21 @@ def test_measurements_without_pixel_noise_are_refused(hu_measurements, tmp_path,
     [("ekf-dpacf", short_hu), ("ekf-baseline", short_hu), ("ukf", short_kabir)],
 )
 def test_batch_and_single_run_paths_store_the_same_quantities(estimator, scenario):
-    """The batched path and its per-run fallback must store the same fields: a campaign mixing
-    both once broke for good on resume (KeyError 'dpacf_attitude_deg')."""
+    """The batched path and its per-run fallback go through the one evaluation and store the
+    same fields: a campaign mixing both once broke for good on resume (KeyError
+    'dpacf_attitude_deg')."""
     sc = scenario()
     est = est_base.get(estimator)
     ss = run_seed(sc.montecarlo.seed, 0)
     truth, meas = simulate(sc, ss)
     hist = est.run(sc, meas, run_streams(ss)["estimator"])
-    single = metrics.evaluate_run(est, hist, truth)
-    ((batch, skipped),) = est.run_batch(sc, [meas], [run_streams(ss)["estimator"]], [truth])
+    single = evaluation.evaluate_run(hist, truth)
+    p_every = evaluation.nees_every(meas.t)
+    (hb,) = est.run_batch(sc, [meas], [run_streams(ss)["estimator"]], p_every=p_every)
+    batch = evaluation.evaluate_run(hb, truth)
     assert sorted(single.errors) == sorted(batch.errors)
-    assert sorted(hist.skipped) == sorted(skipped)
+    assert sorted(hist.skipped) == sorted(hb.skipped)
+    np.testing.assert_allclose(single.nees, batch.nees, rtol=1e-6)
     for key in single.errors:  # and the same values, where both are defined
         a, b = single.errors[key], batch.errors[key]
         both = np.isfinite(a) & np.isfinite(b)

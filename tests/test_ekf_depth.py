@@ -7,6 +7,7 @@ from hypothesis.extra.numpy import arrays
 
 from tumblenav import rotations as rot
 from tumblenav.estimators import ekf_depth as D
+from tumblenav.evaluation import alignment
 from tumblenav.testing import numerical_jacobian
 
 vec = arrays(np.float64, 3, elements=st.floats(-0.3, 0.3))
@@ -56,7 +57,7 @@ def test_rotational_jacobian_eq28(w, l_off):
 def test_ekf_depth_tracks_the_yu2019_target(tmp_path):
     """Yu 2019 Sec. 4 with 1 cm point noise, 120 s: attitude, rate and velocity converge."""
     from tumblenav.campaign.store import run_seed
-    from tumblenav.metrics import rmse_over_time, run_errors
+    from tumblenav.evaluation.metrics import rmse_over_time, run_errors
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
@@ -66,7 +67,7 @@ def test_ekf_depth_tracks_the_yu2019_target(tmp_path):
     truth, meas = simulate(s, run_seed(3, 0))
     est = D.DepthEKF()
     hist = est.run(s, meas, np.random.default_rng(0))
-    r = run_errors(hist, est.truth_state(truth, hist))
+    r = run_errors(hist, alignment.truth_state(truth, hist))
     w = s.window_s
     assert rmse_over_time(r.errors["attitude_deg"], r.t, w) < 0.5
     assert rmse_over_time(r.errors["rate_deg_s"], r.t, w) < 0.05
@@ -87,7 +88,7 @@ def test_ekf_depth_translation_and_offset_are_consistent():
     truth, meas = simulate(s, run_seed(3, 1))
     est = D.DepthEKF()
     hist = est.run(s, meas, np.random.default_rng(0))
-    dx = hist.layout.boxminus(est.truth_state(truth, hist), hist.x)
+    dx = hist.layout.boxminus(alignment.truth_state(truth, hist), hist.x)
     block = slice(11, 20)  # position, velocity, offset
     window = np.flatnonzero(hist.t >= 150.0)
     nees = [dx[k, block] @ np.linalg.solve(hist.P[k][block, block], dx[k, block]) for k in window]

@@ -16,11 +16,13 @@ from hypothesis.extra.numpy import arrays
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
+from tumblenav import evaluation
 from tumblenav import rotations as rot
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators import ekf_dpacf as hu
+from tumblenav.evaluation import alignment
+from tumblenav.evaluation.metrics import chi2_bounds, nees
 from tumblenav.frontends.inertia import inertia_ratios, principal_frame, principal_moments
-from tumblenav.metrics import chi2_bounds
 from tumblenav.testing import numerical_jacobian
 
 # --- strategies --------------------------------------------------------------------------
@@ -38,6 +40,14 @@ mean_motion = st.floats(0.0, 2e-3)  # rad/s (LEO: ~1.1e-3)
 vec3 = arrays(np.float64, 3, elements=st.floats(-50.0, 50.0))
 small3 = arrays(np.float64, 3, elements=st.floats(-0.5, 0.5))
 seeds = st.integers(0, 2**32 - 1)
+
+
+def _errors_and_nees(res, scenario, truths):
+    """Errors (B, n, d) and NEES (B, epochs where P is reported) of a run_filter result against
+    the truths, through the evaluation stage."""
+    hs = hu.histories(res, scenario)
+    _, err = evaluation.error_states(hs, truths)
+    return err, np.stack([nees(e[:: h.P_every], h.P) for e, h in zip(err, hs, strict=True)])
 
 
 def moments_of(a):
@@ -420,7 +430,7 @@ def test_canonical_frame_and_truth_in_frame(q_GT, q_TI, w, a, t_G, seed):
     truth = make_truth(q_TI, w, np.diag(moments), feats)
     known = np.ones(6, dtype=bool)
 
-    R = hu.canonical_frame(template_G, known, truth)
+    R = alignment.canonical_frame(template_G, known, truth)
     assert is_signed_permutation(R)
     assert np.linalg.det(R) == 1.0
     # not merely snapped: with an exact template R_T'T = R_GT'^T R_GT is a signed permutation
@@ -428,7 +438,7 @@ def test_canonical_frame_and_truth_in_frame(q_GT, q_TI, w, a, t_G, seed):
     np.testing.assert_allclose(R, R_GTc.T @ R_GT, atol=1e-8)
 
     lay = hu.layout(6)
-    x = hu.truth_in_frame(truth, R, lay)
+    x = alignment.truth_in_frame(truth, R, lay)
     assert x.shape == (2, lay.nominal_dim)
     p = x[:, lay.nom("inertia")]
     np.testing.assert_allclose(hu.inertia_constraint(p), 0.0, atol=1e-12)
@@ -458,14 +468,14 @@ def test_canonical_frame_full_inertia_tensor(q_GT, q_PT, w, a, seed):
     feats = np.random.default_rng(seed).uniform(-2.0, 2.0, (5, 3))
     R_GT = rot.quat_to_matrix(q_GT)
     truth = make_truth(rot.IDENTITY, w, I_T, feats)
-    R = hu.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
+    R = alignment.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert abs(np.linalg.det(R) - 1.0) < 1e-12
     R_GTc = principal_frame(R_GT @ I_T @ R_GT.T)
     np.testing.assert_allclose(R, R_GTc.T @ R_GT, atol=1e-8)
     I_Tc = R @ I_T @ R.T
     np.testing.assert_allclose(I_Tc, np.diag(srt[::-1]), rtol=0, atol=1e-9 * srt[-1])
-    p = hu.truth_in_frame(truth, R, hu.layout(5))[:, 7:10]
+    p = alignment.truth_in_frame(truth, R, hu.layout(5))[:, 7:10]
     np.testing.assert_allclose(p[0], inertia_ratios(srt[::-1]), atol=1e-8)
 
 
@@ -481,13 +491,13 @@ def test_canonical_frame_identity_aligned_template(q_TI, w, k):
     feats = np.random.default_rng(7).uniform(-2.0, 2.0, (5, 3))
     R_GT = FLIPS[k]
     truth = make_truth(q_TI, w, inertia, feats)
-    R = hu.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
+    R = alignment.canonical_frame(feats @ R_GT.T, np.ones(5, dtype=bool), truth)
     np.testing.assert_array_equal(R, R_GT)
     # principal_frame of the inertia seen in G reproduces it (R_GT' = I)
     R_GTc = principal_frame(R_GT @ inertia @ R_GT.T)
     np.testing.assert_allclose(R_GTc, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(R_GTc.T @ R_GT, R, atol=1e-12)
-    x = hu.truth_in_frame(truth, R, hu.layout(5))
+    x = alignment.truth_in_frame(truth, R, hu.layout(5))
     np.testing.assert_allclose(x[0, 7:10], inertia_ratios([8.0, 5.0, 4.0]), atol=1e-15)
 
 
@@ -581,8 +591,10 @@ def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration,
     ks = range(runs) if isinstance(runs, int) else runs
     sims = [simulate(s, run_seed(11, k)) for k in ks]
     meas, truths = [m for _, m in sims], [t for t, _ in sims]
-    a = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="compiled")
-    b = hu.run_filter(s, meas, use_dpacf, truths=truths, nees_every=7, engine="numpy")
+    a = hu.run_filter(s, meas, use_dpacf, p_every=7, engine="compiled")
+    b = hu.run_filter(s, meas, use_dpacf, p_every=7, engine="numpy")
+    for r in (a, b):
+        r["err"], r["nees"] = _errors_and_nees(r, s, truths)
     assert np.array_equal(a["k0"], b["k0"])
     assert np.array_equal(a["diverged"], b["diverged"])
     assert np.array_equal(a["frame_flips"], b["frame_flips"])
@@ -606,7 +618,8 @@ def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration,
     upto = a["t"] < 60.0 if expect == "diverge" else np.ones(len(a["t"]), dtype=bool)
     for key, atol in (("x", 1e-6), ("err", 1e-6), ("P", 1e-8), ("nis", 1e-5)):
         assert np.array_equal(np.isfinite(a[key]), np.isfinite(b[key])), key
-        va, vb = a[key][:, upto], b[key][:, upto]
+        when = upto[::7] if key == "P" else upto  # P is reported every p_every = 7 epochs
+        va, vb = a[key][:, when], b[key][:, when]
         fin = np.isfinite(vb)
         assert np.allclose(va[fin], vb[fin], rtol=1e-6 * loose, atol=atol * loose), key
     fin = np.isfinite(b["nees"])
@@ -634,18 +647,6 @@ def test_compiled_rotation_discretisation_equals_numpy(w, a, dt, sigma_r2):
     Phi_c, Qk_c = _hu_kernel._rotation_discrete(w, p, sigma_r2, dt, np.empty((9, 9, 9)))
     assert np.allclose(Phi_c, Phi, rtol=1e-12, atol=1e-15)
     assert np.allclose(Qk_c, Qk, rtol=1e-10, atol=1e-20)
-
-
-@given(seed=seeds, pd=st.booleans())
-def test_compiled_nees_equals_solve(seed, pd):
-    """Cholesky NEES, and the LU fallback for a covariance that is not positive definite."""
-    from tumblenav.estimators import _hu_kernel
-
-    rng = np.random.default_rng(seed)
-    A = rng.normal(size=(33, 33))
-    P = A @ A.T + 0.1 * np.eye(33) if pd else A + A.T
-    e = rng.normal(size=33)
-    assert np.isclose(_hu_kernel._nees(P, e), e @ np.linalg.solve(P, e), rtol=1e-8)
 
 
 def _random_state(rng: np.random.Generator, n_feat: int) -> tuple:
@@ -855,7 +856,7 @@ def test_start_waits_for_the_ratios_but_not_forever():
 
     def start(use_dpacf=True, **tuning):
         sc = base.with_updates(**{"estimator.tuning": tuning})
-        res = hu.run_filter(sc, meas, use_dpacf, keep_history=False)
+        res = hu.run_filter(sc, meas, use_dpacf)
         return float(res["t"][res["k0"][0]])
 
     free = start(max_ratio_sigma=None)
@@ -978,7 +979,7 @@ def test_dpacf_emission_threshold_does_not_change_the_filter():
             **{"estimator.tuning": {"dpacf_emit_sigma_rad": emit}},
         )
         sims = [simulate(s, run_seed(5, k)) for k in range(2)]
-        out[emit] = hu.run_filter(s, [m for _, m in sims], True, truths=[t for t, _ in sims])
+        out[emit] = hu.run_filter(s, [m for _, m in sims], True)
     a, b = out[0.05], out[0.3]
     assert np.array_equal(a["k0"], b["k0"])
     assert np.array_equal(a["x"], b["x"], equal_nan=True)
@@ -1012,9 +1013,10 @@ def test_iterated_update_after_a_long_occlusion():
 
     def position_nees(engine, **tuning):
         sc = s.with_updates(**{"estimator.tuning": {"max_ratio_sigma": 0.03, **tuning}})
-        res = hu.run_filter(sc, [meas], True, truths=[truth], engine=engine)
+        res = hu.run_filter(sc, [meas], True, engine=engine)
+        err, _ = _errors_and_nees(res, sc, [truth])
         w = (res["t"] > 80.5) & (res["t"] < 100.0)
-        e, P = res["err"][0, w, 9:12], res["P"][0, w, 9:12, 9:12]
+        e, P = err[0, w, 9:12], res["P"][0, w, 9:12, 9:12]
         return float(np.mean(np.einsum("ki,ki->k", e, np.linalg.solve(P, e[..., None])[..., 0])))
 
     for engine in ("compiled", "numpy"):
@@ -1040,7 +1042,7 @@ def test_iterated_update_is_second_order_in_the_linearisation_point():
         duration_s=40.0, steady_state_window_s=[30.0, 40.0], **{"estimator.tuning": tuning}
     )
     meas = simulate(s, run_seed(5, 0))[1]
-    res = hu.run_filter(s, [meas], True, keep_history=True, engine="numpy")
+    res = hu.run_filter(s, [meas], True, engine="numpy")
     tun = hu.parse_tuning(tuning)
     fe = hu.filter_view(hu.frontend([meas], tun), tun.max_dpacf_sigma_rad)
     k = len(res["t"]) - 5

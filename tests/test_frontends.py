@@ -794,8 +794,8 @@ def test_full_covariance_alignment_is_consistent_and_beats_kabsch(rng_m):
     2e-5 rad, its NEES (3 dof) is inside the chi-square bounds of 400 draws, and its
     median error is far below the isotropic Kabsch fit's (at 190 m: about 0.2 against
     20 deg)."""
+    from tumblenav.evaluation.metrics import chi2_bounds
     from tumblenav.frontends.stereo_points import weighted_kabsch
-    from tumblenav.metrics import chi2_bounds
 
     rng = np.random.default_rng(5)
     M = 400

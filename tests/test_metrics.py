@@ -9,7 +9,7 @@ from hypothesis.extra.numpy import arrays
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from tumblenav import metrics
+from tumblenav.evaluation import metrics
 
 quats = arrays(np.float64, (5, 4), elements=st.floats(-1.0, 1.0)).filter(
     lambda q: np.all(np.linalg.norm(q, axis=-1) > 0.1)

@@ -140,8 +140,9 @@ class _Flaky(HuEKF):
     run_batch = None
 
 
-def test_failed_runs_are_recorded_and_campaign_goes_on(tmp_path):
-    est_base.register("test-flaky")(lambda: _Flaky(True))
+def test_failed_runs_are_recorded_and_campaign_goes_on(tmp_path, monkeypatch):
+    # registered for this test only (other tests list the registry)
+    monkeypatch.setitem(est_base._REGISTRY, "test-flaky", lambda: _Flaky(True))
     sc = load_scenario(short_scenario(tmp_path))
     s = run_campaign(sc, "test-flaky", 4, tmp_path / "mc", workers=1)
     assert s["runs"] + s["runs_failed"] == 4 and s["runs_failed"] >= 1

@@ -11,8 +11,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from tumblenav import metrics, pipeline, plots
+from tumblenav import pipeline, plots
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout
+from tumblenav.evaluation import metrics
 
 LAYOUT = StateLayout(
     (

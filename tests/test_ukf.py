@@ -12,12 +12,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from tumblenav import dynamics, metrics
+from tumblenav import dynamics
 from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
 from tumblenav.errors import InputError
 from tumblenav.estimators import base
 from tumblenav.estimators import ukf as U
+from tumblenav.evaluation import alignment, metrics
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 from tumblenav.testing import numerical_jacobian
@@ -114,7 +115,9 @@ def test_measurement_model_at_the_truth_reproduces_noise_free_measurements():
     tun = U.parse_tuning({**s.estimator.tuning, "sigma_p_rad": 1e-5})
     z, R = U.stereo_measurements(meas, tun)
     g = U.geometry(s, meas.t, meas)
-    h = U.measurement_model(U.truth_in_layout(truth), g.R_CI, g.rho0_C, g.rho0_dot_C, g.centres_x)
+    h = U.measurement_model(
+        alignment.kabir_truth_state_of(truth), g.R_CI, g.rho0_C, g.rho0_dot_C, g.centres_x
+    )
     np.testing.assert_allclose(z[..., :5], h[..., :5], atol=1e-12)
     # flow by Kabir 2025 eq. 27 at 1 Hz: ~1e-4 rad/s truncation inside (0.075 Hz tumbling)
     np.testing.assert_allclose(z[2:-2, :, 5:], h[2:-2, :, 5:], atol=2e-3)
@@ -123,7 +126,7 @@ def test_measurement_model_at_the_truth_reproduces_noise_free_measurements():
 
 def test_truth_state_uses_k2_log_I3_over_I2():
     truth, _ = simulate(kabir(duration=5.0), 1)
-    x = U.truth_in_layout(truth)
+    x = alignment.kabir_truth_state_of(truth)
     np.testing.assert_allclose(x[0, 7:9], [np.log(90 / 100), np.log(112 / 100)])
     assert x.shape == (len(truth.t), 9 + 15)
 
@@ -167,7 +170,7 @@ def near_run():
     for variant in ("additive", "mult"):
         est = U.KabirUKF(variant)
         h = est.run(s, meas, np.random.default_rng(0))
-        out[variant] = (h, metrics.run_errors(h, est.truth_state(truth, h)))
+        out[variant] = (h, metrics.run_errors(h, alignment.truth_state(truth, h)))
     return s, truth, meas, out
 
 
@@ -205,7 +208,7 @@ def test_ukf_converges_from_the_papers_initial_guess():
     truth, meas = simulate(s, run_seed(0, 0))
     est = U.KabirUKF("additive")
     h = est.run(s, meas, np.random.default_rng(0))
-    r = metrics.run_errors(h, est.truth_state(truth, h))
+    r = metrics.run_errors(h, alignment.truth_state(truth, h))
     assert r.errors["attitude_deg"][0] > 20.0
     assert r.errors["attitude_deg"][-1] < 1.0
     assert r.errors["rate_deg_s"][-1] < 0.5
@@ -240,7 +243,7 @@ def test_run_ukf_takes_pseudo_measurements_with_their_own_variances(near_run):
     h2 = U.run_ukf(s, meas.t, z2, 4.0 * R, "mult", tun, g)
     assert np.all(h2.nis_dof[2:-2] == 40)
     assert np.nanmean(h2.nis[100:] / h2.nis_dof[100:]) < np.nanmean(h.nis[100:] / h.nis_dof[100:])
-    r2 = metrics.run_errors(h2, U.truth_in_layout(truth))
+    r2 = metrics.run_errors(h2, alignment.kabir_truth_state_of(truth))
     assert r2.errors["attitude_deg"][-1] < 1.0
     with pytest.raises(ValueError, match="shape"):
         U.run_ukf(s, meas.t, z[:, :, :8], R, "additive", tun, g)
@@ -278,7 +281,7 @@ def test_triangulated_start_needs_no_truth():
     x0, P0 = U.initial_state(s, meas.t, z, U.geometry(s, meas.t, meas), tun, "mult")
     assert P0.shape == (23, 23)
     # kabir2025 starts at q0 = identity, the triangulated start's frame: compare directly
-    xt = U.truth_in_layout(truth)[0]
+    xt = alignment.kabir_truth_state_of(truth)[0]
     # rate: 2nd-order one-sided flow at 1 Hz, ~(omega dt)^2 / 3 = 7 % at 0.47 rad/s
     np.testing.assert_allclose(x0[0:3], xt[0:3], rtol=0.1)
     np.testing.assert_allclose(x0[9:], xt[9:], atol=0.02)  # m, 1e-5 rad at 10 m depth
@@ -288,14 +291,15 @@ def test_run_batch_equals_single_runs():
     s = kabir(duration=100.0, **NEAR)
     sims = [simulate(s, run_seed(9, k)) for k in range(2)]
     est = U.KabirUKF("mult")
-    res = est.run_batch(s, [m for _, m in sims], [None, None], [t for t, _ in sims])
-    for (truth, meas), (r, skipped) in zip(sims, res, strict=True):
+    res = est.run_batch(s, [m for _, m in sims], [None, None])
+    for (truth, meas), hb in zip(sims, res, strict=True):
         h = est.run(s, meas, None)
-        single = metrics.run_errors(h, est.truth_state(truth, h))
+        single = metrics.run_errors(h, alignment.truth_state(truth, h))
+        r = metrics.run_errors(hb, alignment.truth_state(truth, hb))
         for k, v in single.errors.items():
             np.testing.assert_allclose(r.errors[k], v, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(r.nees, single.nees, rtol=1e-6)
-        assert skipped == h.skipped
+        assert hb.skipped == h.skipped
 
 
 @pytest.mark.parametrize("estimator", ["ukf", "ukf-mult", "ukf-gp"])

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from tumblenav import dynamics, metrics
+from tumblenav import dynamics
 from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import base, ukf_gp
 from tumblenav.estimators import ukf as U
+from tumblenav.evaluation import alignment, metrics
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
@@ -51,7 +52,7 @@ def kabir(**gp_tuning):
 
 
 def attitude_error_deg(est, truth, h):
-    return metrics.run_errors(h, est.truth_state(truth, h)).errors["attitude_deg"]
+    return metrics.run_errors(h, alignment.truth_state(truth, h)).errors["attitude_deg"]
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +155,9 @@ def test_pseudo_measurements_follow_the_true_projections(runs):
     # [u_R, v_R, u_L, v_L = v_R, u_L - u_R] (Kabir 2025 eq. 16-17) against the noise-free
     # projections: observed RMS 1.06-1.07 sigma_p over the 200 s ahead (seeds 0, 1, 4)
     g = U.geometry(s, t, meas)
-    h = U.measurement_model(U.truth_in_layout(truth), g.R_CI, g.rho0_C, g.rho0_dot_C, g.centres_x)
+    h = U.measurement_model(
+        alignment.kabir_truth_state_of(truth), g.R_CI, g.rho0_C, g.rho0_dot_C, g.centres_x
+    )
     np.testing.assert_array_equal(zp[occluded][..., 3], zp[occluded][..., 1])
     np.testing.assert_allclose(
         zp[occluded][..., 4], zp[occluded][..., 2] - zp[occluded][..., 0], atol=1e-15

@@ -10,12 +10,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from tumblenav import io, metrics
+from tumblenav import evaluation, io
 from tumblenav import plots as figures
 from tumblenav.campaign import runner
 from tumblenav.campaign.store import run_seed
 from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
+from tumblenav.evaluation import metrics
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
 from tumblenav.simulation import (
@@ -57,11 +58,13 @@ def _rig_differences(file_rig, scenario_rig) -> list[str]:
     if file_rig.kind != scenario_rig.kind:
         out.append(f"rig {file_rig.kind} (scenario: {scenario_rig.kind})")
     if not np.isclose(file_rig.baseline_m, scenario_rig.baseline_m, rtol=1e-6, atol=1e-9):
-        out.append(
-            f"baseline {file_rig.baseline_m:g} m (scenario: {scenario_rig.baseline_m:g} m)"
-        )
+        out.append(f"baseline {file_rig.baseline_m:g} m (scenario: {scenario_rig.baseline_m:g} m)")
     for name, cf, cs in zip(("left", "right"), file_rig.cameras, scenario_rig.cameras, strict=True):
-        for attr, unit in (("focal_px", "px"), ("principal_point_px", "px"), ("resolution_px", "px")):
+        for attr, unit in (
+            ("focal_px", "px"),
+            ("principal_point_px", "px"),
+            ("resolution_px", "px"),
+        ):
             a, b = np.asarray(getattr(cf, attr), float), np.asarray(getattr(cs, attr), float)
             if a.shape != b.shape or not np.allclose(a, b, rtol=1e-6, atol=1e-6):
                 out.append(
@@ -168,8 +171,8 @@ def run_estimate(
     with con.status(f"{estimator} on {scenario.name} ({len(meas.t)} epochs)"):
         hist = est.run(scenario, meas, run_streams(ss)["estimator"])
     output = Path(output)
-    r = metrics.evaluate_run(est, hist, truth) if truth is not None else None
-    x_true = est.truth_state(truth, hist) if truth is not None else None
+    r = evaluation.evaluate_run(hist, truth) if truth is not None else None
+    x_true = evaluation.truth_state(truth, hist) if truth is not None else None
     io.write_netcdf(
         io.estimates_dataset(hist, scenario.name, estimator, x_true), output / "estimates.nc"
     )

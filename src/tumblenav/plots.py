@@ -26,7 +26,7 @@ from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import NullFormatter  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 
-from tumblenav import metrics  # noqa: E402
+from tumblenav.evaluation import metrics  # noqa: E402
 from tumblenav.io import atomic_write  # noqa: E402
 
 Array = NDArray[np.float64]

@@ -40,10 +40,11 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from tumblenav import io, metrics
+from tumblenav import evaluation, io
 from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.errors import InputError, Interrupted
 from tumblenav.estimators import base as est_base
+from tumblenav.evaluation import metrics
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, scenario_to_yaml
 from tumblenav.simulation import run_streams, simulate
@@ -69,15 +70,17 @@ def evaluate_runs(
     batch = getattr(est, "run_batch", None)
     if batch is not None and sims:
         try:
-            res = batch(scenario, [s[2] for s in sims], [s[3] for s in sims], [s[1] for s in sims])
-            out.extend((k, r, None) for (k, *_), r in zip(sims, res, strict=True))
+            p_every = evaluation.nees_every(sims[0][2].t)  # the covariance where NEES needs it
+            hists = batch(scenario, [s[2] for s in sims], [s[3] for s in sims], p_every=p_every)
+            for (k, truth, *_), h in zip(sims, hists, strict=True):
+                out.append((k, (evaluation.evaluate_run(h, truth), h.skipped), None))
             return out
         except Exception:  # noqa: BLE001 - fall back to one run at a time to isolate failures
-            pass
+            out = [o for o in out if o[1] is None]
     for k, truth, meas, rng in sims:
         try:
             hist = est.run(scenario, meas, rng)
-            out.append((k, (metrics.evaluate_run(est, hist, truth), hist.skipped), None))
+            out.append((k, (evaluation.evaluate_run(hist, truth), hist.skipped), None))
         except Exception as exc:  # noqa: BLE001
             out.append((k, None, _short(exc)))
     return out

@@ -26,7 +26,7 @@ import numpy as np
 import tumblenav
 from tumblenav import io
 from tumblenav.errors import InputError
-from tumblenav.metrics import RunErrors
+from tumblenav.evaluation.metrics import RunErrors
 
 
 def run_seed(base_seed: int, k: int) -> np.random.SeedSequence:

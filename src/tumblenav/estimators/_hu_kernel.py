@@ -290,34 +290,6 @@ def _predict_cov(P, Phr, Qr, Pht, Qt):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _nees(P, e):
-    """``e^T P^-1 e`` by a Cholesky factorisation (LU solve if P is not positive definite)."""
-    d = P.shape[0]
-    L = np.zeros((d, d))
-    for j in range(d):
-        s = P[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return np.dot(e, np.linalg.solve(P, e))
-        L[j, j] = math.sqrt(s)
-        for i in range(j + 1, d):
-            s = P[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    out = 0.0
-    z = np.empty(d)
-    for i in range(d):  # z = L^-1 e, NEES = |z|^2
-        s = e[i]
-        for k in range(i):
-            s -= L[i, k] * z[k]
-        z[i] = s / L[i, i]
-        out += z[i] * z[i]
-    return out
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _absorb(P, dx, HP, S, nu):
     """One 3-row block of the sequential update (Hu 2024 eq. 40-42, Joseph form evaluated
     as P - (HP)^T S^-1 (HP) for the optimal gain); returns the block's NIS."""
@@ -718,15 +690,12 @@ def run_filter_kernel(
     q_feat,
     flips,
     qflips,
-    xt,
-    nees_every,
+    p_every,
     neutral,
     out_x,
     out_P,
     nis,
     nis_dof,
-    err,
-    nees,
     diverged,
     flip_count,
     consider,
@@ -741,9 +710,11 @@ def run_filter_kernel(
     iter_max,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
-    ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied), ``xt``
-    (B,n,nom) the truth in the filter's frame or an empty array, ``out_x``/``out_P`` empty
-    (B,0,..) when the history is not kept. Outputs are filled in place (NaN where inactive).
+    ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied); ``out_x``
+    (B,n,nom) and ``out_P`` (B,ceil(n/p_every),d,d) the history, the covariance of epoch
+    ``j p_every`` in ``out_P[:, j]`` (campaigns need it only for the NEES, at about 1 Hz). Outputs are filled in place
+    (NaN where inactive or not reported). The kernel never sees the truth: errors and NEES
+    are the evaluation's (:mod:`tumblenav.evaluation`).
     ``consider``: the 'consider' frame model, with the front end's frames ``R_GT`` (B,n,3,3,
     NaN where none), their covariances ``cov_frame`` (B,n,3,3, finite), the probabilities
     of their half turns ``p_turn`` (B,n,3) and the frame error given each turn, ``mu_turn``
@@ -754,15 +725,12 @@ def run_filter_kernel(
     times (relinearised at the last posterior; 0: never)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
-    keep = out_x.shape[1] > 0
-    truth = xt.shape[1] > 0
     for b in range(B):
         x = neutral.copy()
         P = np.eye(d)
         active = False
         votes = 0
         f_first = np.full((N, 3), np.nan)
-        e = np.empty(d)
         ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
         R_used = np.eye(3)  # 'consider': the frame the state is in, and its covariance
         C_used = np.zeros((3, 3))
@@ -847,7 +815,7 @@ def run_filter_kernel(
                     nis_dof[b, k] = dof_k
                     if dof_k > 0:
                         nis[b, k] = nis_k
-            report = active and (keep or (truth and k % nees_every == 0))
+            report = active and k % p_every == 0
             if report:
                 if consider:
                     _consider_cov(
@@ -856,13 +824,6 @@ def run_filter_kernel(
                     )  # fmt: skip
                 else:
                     P_rep[:, :] = P
-            if keep and active:
+                out_P[b, k // p_every] = P_rep
+            if active:
                 out_x[b, k] = x
-                out_P[b, k] = P_rep
-            if truth and active:
-                _boxminus_q(xt[b, k, 0:4], x[0:4], e[0:3])
-                for i in range(3, d):
-                    e[i] = xt[b, k, i + 1] - x[i + 1]
-                err[b, k] = e
-                if k % nees_every == 0:
-                    nees[b, k] = _nees(P_rep, e)

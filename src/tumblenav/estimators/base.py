@@ -126,11 +126,15 @@ class Belief:
 class EstimateHistory:
     """What one estimator run returns.
 
-    t : (n,) s; x : (n, nominal_dim); P : (n, dim, dim) error-state covariance.
+    t : (n,) s; x : (n, nominal_dim); P : (n, dim, dim) error-state covariance, or with
+    ``P_every`` > 1 only that of every ``P_every``-th epoch, (ceil(n / P_every), dim, dim)
+    (campaigns keep the covariance where the NEES is evaluated, not at every epoch).
     nis : (n,) normalised innovation squared of each update (NaN where no update);
     nis_dof : (n,) its degrees of freedom (0 where no update).
     skipped : counts of measurements skipped and why (NaN, one camera only, ...).
-    info : estimator-specific extras (e.g. the DPACF frame definition) for evaluation.
+    info : estimator-specific extras; ``info["convention"]`` names the state convention the
+    evaluation compares the truth in (:mod:`tumblenav.evaluation.alignment`: principal frame,
+    symmetries, inertia parametrisation), e.g. the DPACF frame definition for ``hu2024``.
     """
 
     t: Array
@@ -141,11 +145,15 @@ class EstimateHistory:
     nis_dof: Array
     skipped: dict[str, int] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    P_every: int = 1
 
     def block(self, name: str) -> Array:
         return self.x[:, self.layout.nom(name)]
 
     def sigma(self, name: str) -> Array:
+        """1-sigma of block ``name`` (n, size): at every epoch (``P_every`` must be 1)."""
+        if self.P_every != 1:
+            raise ValueError("this history keeps the covariance every P_every epochs only")
         s = self.layout.err(name)
         return np.sqrt(np.maximum(np.diagonal(self.P[:, s, s], axis1=1, axis2=2), 0.0))
 
@@ -164,11 +172,6 @@ class Estimator(Protocol):
     def run(
         self, scenario: Any, measurements: Any, rng: np.random.Generator
     ) -> EstimateHistory: ...
-
-    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
-        """The true nominal state (n, nominal_dim) in this estimator's conventions and frame,
-        so that ``layout.boxminus(truth_state, x)`` is the estimation error."""
-        ...
 
 
 _REGISTRY: dict[str, Callable[[], Estimator]] = {}

@@ -387,32 +387,8 @@ class DepthEKF:
             nis=nis,
             nis_dof=nis_dof,
             skipped=skipped,
-            info={"symmetries": syms},
+            info={"convention": "yu2019", "symmetries": syms},  # evaluation.alignment
         )
-
-    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
-        """The truth in the estimator's frame. Rectangles alone fix the attitude only up to the
-        model's own symmetries (for the procedural satellite: half turns about its axes), so
-        the truth is expressed in the symmetric frame the filter started in (chosen once per
-        run, at the first estimate); later jumps between symmetric frames count as errors."""
-        G = np.eye(3)
-        syms = history.info.get("symmetries") or [np.eye(3)]
-        first = np.flatnonzero(np.all(np.isfinite(history.x), axis=1))
-        if len(first):
-            k = first[0]
-            R_est = rot.quat_to_matrix(history.x[k, 0:4])
-            R_true = rot.quat_to_matrix(truth.q_TI[k])
-            G = max(syms, key=lambda S: np.sum(R_est * (S @ R_true)))
-        x = np.zeros((len(truth.t), LAYOUT.nominal_dim))
-        I = G @ truth.inertia_T @ G.T
-        I = I / I[0, 0]
-        x[:, 0:4] = rot.quat_multiply(rot.matrix_to_quat(G), truth.q_TI)
-        x[:, 4:7] = truth.omega_TI_T @ G.T
-        x[:, 7:12] = [I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
-        x[:, 12:15] = truth.r_L
-        x[:, 15:18] = truth.v_L
-        x[:, 18:21] = truth.mass_centre_offset_T @ G.T
-        return x
 
 
 register("ekf-depth")(DepthEKF)

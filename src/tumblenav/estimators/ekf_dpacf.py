@@ -46,7 +46,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends import stereo_points
-from tumblenav.frontends.inertia import branch_statistics, inertia_ratios, principal_frame
+from tumblenav.frontends.inertia import branch_statistics, inertia_ratios
 
 Array = NDArray[np.float64]
 
@@ -943,14 +943,13 @@ def run_filter(
     scenario: Any,
     meas_list: list,
     use_dpacf: bool,
-    truths: list | None = None,
-    keep_history: bool = True,
-    nees_every: int = 1,
+    p_every: int = 1,
     engine: Literal["auto", "numpy", "compiled"] | None = None,
 ) -> dict[str, Any]:
-    """Run the EKF on B runs at once. Returns histories (if ``keep_history``), NIS, and with
-    ``truths`` (the simulated truth of each run) the error histories and NEES against the
-    truth expressed in this filter's principal frame (:func:`canonical_frame`).
+    """Run the EKF on B runs at once. Returns the histories ``x`` (B, n, nom) and ``P``
+    (B, ceil(n / p_every), d, d), the covariance of every ``p_every``-th epoch (campaigns need
+    it only for the NEES, at about 1 Hz), the NIS and what each run skipped. It never
+    sees the truth: errors are the evaluation's (:mod:`tumblenav.evaluation`).
 
     ``engine``: the compiled per-run loop (:mod:`tumblenav.estimators._hu_kernel`) or the
     batched numpy loop below; both give the same result (tests). ``auto`` takes the compiled
@@ -1020,25 +1019,15 @@ def run_filter(
     if consider:  # the attitude measurement's noise: its white (G attitude) part only
         att_inflation = 0.0
     t = fe.t
-    out_x = np.full((B, n, lay.nominal_dim), np.nan) if keep_history else None
-    out_P = np.full((B, n, d, d), np.nan) if keep_history else None
+    out_x = np.full((B, n, lay.nominal_dim), np.nan)
+    out_P = np.full((B, -(-n // p_every), d, d), np.nan)  # epochs 0, p_every, 2 p_every, ...
     nis = np.full((B, n), np.nan)
     nis_dof = np.zeros((B, n))
-    nees = np.full((B, n), np.nan) if truths is not None else None
-    err = np.full((B, n, d), np.nan) if truths is not None else None
     rejected = np.zeros(B, dtype=np.int64)
     diverged = np.zeros(B, dtype=bool)
     flip_votes = np.zeros(B, dtype=np.int64)
     f_first = np.full((B, N, 3), np.nan)  # first estimates of the features (FEJ option)
     flips = np.zeros(B, dtype=np.int64)
-    xt = None
-    if truths is not None:
-        xt = np.stack(
-            [
-                truth_in_frame(tr, canonical_frame(fe.template_G[b], fe.known[b], tr), lay)
-                for b, tr in enumerate(truths)
-            ]
-        )
 
     def pack() -> dict[str, Any]:
         return {
@@ -1047,14 +1036,11 @@ def run_filter(
             "P": out_P,
             "nis": nis,
             "nis_dof": nis_dof,
-            "nees": nees,
-            "err": err,
             "layout": lay,
             "frontend": fe,
             "k0": init.k0,
             "rejected": rejected,
             "diverged": diverged,
-            "x_true": xt,
             "frame_flips": flips,
             "dpacf_q_TI": fe_all.q_TI,
         }
@@ -1070,9 +1056,6 @@ def run_filter(
         R0 = np.nan_to_num(fe.cov_TI + (att_inflation - 1.0) * fe.cov_frame)
         Pht, Qt = _translation_discrete(n_orbit, s_t2, dt_nom)  # uniform grid: one dt
 
-        def empty(*shape):
-            return np.zeros((B, 0) + shape)
-
         # cov_L as it is (no NaN-free copy of the largest array): the kernel reads it only where
         # ``usable``, which the triangulation sets only for finite covariances
         _hu_kernel.run_filter_kernel(
@@ -1081,11 +1064,8 @@ def run_filter(
             tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
             MAX_RATE_RAD_S,
             s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
-            _FLIPS, rot.matrix_to_quat(_FLIPS), xt if xt is not None else empty(1), nees_every,
-            _neutral_state(lay), out_x if keep_history else empty(1),
-            out_P if keep_history else empty(1, 1), nis, nis_dof,
-            err if err is not None else empty(1), nees if nees is not None else empty(),
-            diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
+            _FLIPS, rot.matrix_to_quat(_FLIPS), p_every, _neutral_state(lay), out_x, out_P,
+            nis, nis_dof, diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
             S_turn, refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
         )  # fmt: skip
         return pack()
@@ -1176,21 +1156,15 @@ def run_filter(
             nis[:, k] = np.where(active & (dof_k > 0), nis_k, np.nan)
             nis_dof[:, k] = np.where(active, dof_k, 0)
             rejected += np.where(active, rej, 0)
-        P_rep = P
-        if consider and active.any() and (keep_history or k % nees_every == 0):
-            ku = (runs, k_used)
-            P_rep = frame_consider_cov(
-                x, P, fe.cov_frame[ku], lay, p_turn[ku], mu_turn[ku], S_turn[ku]
-            )
-        if keep_history:
-            out_x[active, k] = x[active]
-            out_P[active, k] = P_rep[active]
-        if xt is not None and active.any():
-            e = lay.boxminus(xt[:, k], x)
-            err[active, k] = e[active]
-            if k % nees_every == 0:  # NEES needs a d x d solve: sampled in campaigns
-                sol = np.linalg.solve(P_rep[active], e[active][..., None])[..., 0]
-                nees[active, k] = np.sum(e[active] * sol, axis=1)
+        out_x[active, k] = x[active]
+        if k % p_every == 0 and active.any():
+            P_rep = P
+            if consider:
+                ku = (runs, k_used)
+                P_rep = frame_consider_cov(
+                    x, P, fe.cov_frame[ku], lay, p_turn[ku], mu_turn[ku], S_turn[ku]
+                )
+            out_P[active, k // p_every] = P_rep[active]
     return pack()
 
 
@@ -1569,61 +1543,11 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
     return fe
 
 
-# --- evaluation: the truth in the filter's frame ------------------------------------------
-
-
-def canonical_frame(template_G: Array, known: NDArray[np.bool_], truth: Any) -> Array:
-    """``R_T'T``: the DPACF principal frame T' that this run's G defines, from the truth.
-
-    G is fixed to the target by the template (the features' G coordinates); aligning the
-    template with the true feature positions in T gives ``R_GT``; the true inertia in G then
-    has the DPACF frame ``R_GT'`` (Hu 2024 eq. 17) and ``R_T'T = R_GT'^T R_GT``. When the
-    scenario's T is itself principal (diagonal inertia) the two share principal axes and
-    ``R_T'T`` is snapped to the nearest signed permutation (det +1).
-    """
-    g = template_G[known]
-    f = truth.features_T[known]
-    H = (f - f.mean(0)).T @ (g - g.mean(0))
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R_GT = Vt.T @ D @ U.T
-    I_T = np.asarray(truth.inertia_T, dtype=float)
-    R_GTc = principal_frame(R_GT @ I_T @ R_GT.T)
-    M = R_GTc.T @ R_GT
-    if np.allclose(I_T, np.diag(np.diag(I_T)), rtol=0, atol=1e-12 * np.abs(I_T).max()):
-        # T is principal too: the two frames differ by a signed permutation exactly (the
-        # template's noise only perturbs M slightly), so snap to it
-        snap = np.zeros((3, 3))
-        for i in range(3):
-            j = int(np.argmax(np.abs(M[i])))
-            snap[i, j] = np.sign(M[i, j])
-        return snap
-    # the scenario's T is not principal (full inertia tensor): keep the rotation itself
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-
-
-def truth_in_frame(truth: Any, R_TcT: Array, lay: StateLayout) -> Array:
-    """The true state (n, nominal_dim) expressed in the frame T' = R_T'T T."""
-    n = len(truth.t)
-    x = np.zeros((n, lay.nominal_dim))
-    qc = rot.matrix_to_quat(R_TcT)
-    x[:, lay.nom("attitude")] = rot.quat_multiply(qc, truth.q_TI)
-    x[:, lay.nom("rate")] = truth.omega_TI_T @ R_TcT.T
-    moments = np.diag(R_TcT @ truth.inertia_T @ R_TcT.T)
-    x[:, lay.nom("inertia")] = inertia_ratios(moments)
-    x[:, lay.nom("position")] = truth.r_L
-    x[:, lay.nom("velocity")] = truth.v_L
-    x[:, lay.nom("features")] = (truth.features_T @ R_TcT.T).ravel()
-    return x
-
-
 ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)
 # A rate estimate above one turn per second is a filter that blew up: ten times the fastest
 # tumble reported for malfunctioning spacecraft (36 deg/s, Hu 2024 Sec. 5 citing [27]).
 MAX_RATE_RAD_S = 2 * np.pi
 CONSTRAIN_EVERY = 10  # epochs between projections onto the inertia constraint
-NEES_EVERY = 10  # campaigns sample the NEES every 10 epochs (1 Hz for hu2024)
 
 
 class HuEKF:
@@ -1651,74 +1575,54 @@ class HuEKF:
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
         self.check(scenario)
-        res = run_filter(scenario, [measurements], self.use_dpacf)
-        fe = res["frontend"]
-        skipped = {k: int(v[0]) for k, v in fe.skipped.items()}
-        skipped["gated_out"] = int(res["rejected"][0])
-        skipped["diverged"] = int(res["diverged"][0])
-        skipped["frame_flips"] = int(res["frame_flips"][0])
-        return EstimateHistory(
-            t=res["t"],
-            x=res["x"][0],
-            P=res["P"][0],
-            layout=res["layout"],
-            nis=res["nis"][0],
-            nis_dof=res["nis_dof"][0],
-            skipped=skipped,
-            info={
-                "template_G": fe.template_G[0],
-                "known": fe.known[0],
-                "start_time_s": float(res["t"][res["k0"][0]]) if res["k0"][0] >= 0 else None,
-                "dpacf_q_TI": res["dpacf_q_TI"][0],
-                "start_condition": (
-                    "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
-                    f"{parse_tuning(scenario.estimator.tuning).max_dpacf_sigma_rad} rad; "
-                    "epochs with >= 3 triangulated features: "
-                    f"{int((fe.usable[0].sum(axis=1) >= 3).sum())} of {len(fe.t)})"
-                ),
-            },
-        )
+        return histories(run_filter(scenario, [measurements], self.use_dpacf), scenario)[0]
 
-    def run_batch(self, scenario: Any, measurements: list, rngs: list, truths: list) -> list:
-        """Many runs at once (vectorised); returns one (RunErrors, skipped) per run."""
-        from tumblenav.metrics import RunErrors, attitude_error_rad, error_magnitudes
-
+    def run_batch(
+        self, scenario: Any, measurements: list, rngs: list, p_every: int = 1
+    ) -> list[EstimateHistory]:
+        """Many runs at once (vectorised); the same histories as :meth:`run`, with the
+        covariance reported every ``p_every`` epochs (NaN in between)."""
         self.check(scenario)
-        res = run_filter(
-            scenario,
-            measurements,
-            self.use_dpacf,
-            truths=truths,
-            keep_history=False,
-            nees_every=NEES_EVERY,
-        )
-        fe, lay = res["frontend"], res["layout"]
-        mags = error_magnitudes(res["err"], lay)
-        dpacf = np.degrees(
-            attitude_error_rad(res["x_true"][..., lay.nom("attitude")], res["dpacf_q_TI"])
-        )
-        out = []
-        for b in range(len(measurements)):
-            errors = {k: v[b] for k, v in mags.items()}
-            errors["dpacf_attitude_deg"] = dpacf[b]
-            skipped = {k: int(v[b]) for k, v in fe.skipped.items()}
-            skipped["gated_out"] = int(res["rejected"][b])
-            skipped["diverged"] = int(res["diverged"][b])
-            skipped["frame_flips"] = int(res["frame_flips"][b])
-            r = RunErrors(
+        res = run_filter(scenario, measurements, self.use_dpacf, p_every=p_every)
+        return histories(res, scenario)
+
+
+def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
+    """One :class:`EstimateHistory` per run of a :func:`run_filter` result."""
+    fe = res["frontend"]
+    max_sigma = parse_tuning(scenario.estimator.tuning).max_dpacf_sigma_rad
+    out = []
+    for b in range(res["x"].shape[0]):
+        skipped = {k: int(v[b]) for k, v in fe.skipped.items()}
+        skipped["gated_out"] = int(res["rejected"][b])
+        skipped["diverged"] = int(res["diverged"][b])
+        skipped["frame_flips"] = int(res["frame_flips"][b])
+        k0 = res["k0"][b]
+        out.append(
+            EstimateHistory(
                 t=res["t"],
-                errors=errors,
-                nees=res["nees"][b],
-                nees_dof=lay.dim,
+                x=res["x"][b],
+                P=res["P"][b],
+                P_every=-(-len(res["t"]) // res["P"].shape[1]),
+                layout=res["layout"],
                 nis=res["nis"][b],
                 nis_dof=res["nis_dof"][b],
+                skipped=skipped,
+                info={
+                    "convention": "hu2024",  # the run's DPACF frame: evaluation.alignment
+                    "template_G": fe.template_G[b],
+                    "known": fe.known[b],
+                    "start_time_s": float(res["t"][k0]) if k0 >= 0 else None,
+                    "dpacf_q_TI": res["dpacf_q_TI"][b],
+                    "start_condition": (
+                        "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
+                        f"{max_sigma} rad; epochs with >= 3 triangulated features: "
+                        f"{int((fe.usable[b].sum(axis=1) >= 3).sum())} of {len(fe.t)})"
+                    ),
+                },
             )
-            out.append((r, skipped))
-        return out
-
-    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
-        R = canonical_frame(history.info["template_G"], history.info["known"], truth)
-        return truth_in_frame(truth, R, history.layout)
+        )
+    return out
 
 
 register("ekf-dpacf")(lambda: HuEKF(True))

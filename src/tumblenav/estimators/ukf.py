@@ -877,24 +877,32 @@ def run_ukf(
     res = _filter(
         t, z[None], R_diag[None], np.asarray(x0)[None], np.asarray(P0)[None], geom, tun, variant
     )
-    x, P = res["x"][0], res["P"][0]
+    return _history(t, res, 0, variant, tun, np.asarray(x0))
+
+
+def _history(
+    t: Array, res: dict[str, Any], b: int, variant: Variant, tun: KabirTuning, x0: Array
+) -> EstimateHistory:
+    """Run ``b`` of a :func:`_filter` result as an :class:`EstimateHistory` (the covariance
+    as the 23-dim error-state covariance for both variants)."""
+    x, P = res["x"][b], res["P"][b]
     if variant == "additive":
         P = additive_to_error_cov(x, P)
-    u = res["usable"][0]
-    div = int(res["diverged_at"][0])
+    div = int(res["diverged_at"][b])
     return EstimateHistory(
         t=t,
         x=x,
         P=P,
-        layout=layout(N),
-        nis=res["nis"][0],
-        nis_dof=res["nis_dof"][0],
-        skipped=_skipped(u, res, 0),
+        layout=layout((x.shape[-1] - 9) // 3),
+        nis=res["nis"][b],
+        nis_dof=res["nis_dof"][b],
+        skipped=_skipped(res["usable"][b], res, b),
         info={
+            "convention": "kabir2025",  # [omega_TI_T, q_TI, k1, k2, p_T]: evaluation.alignment
             "variant": variant,
             "diverged_at_s": float(t[div]) if div >= 0 else None,
             "tuning": tun.model_dump(),
-            "x0": np.asarray(x0),
+            "x0": x0,
         },
     )
 
@@ -908,18 +916,6 @@ def _skipped(usable: NDArray[np.bool_], res: dict, b: int) -> dict[str, int]:
         "diverged": int(res["diverged_at"][b] >= 0),
         "covariance_repairs": int(res["repairs"][b]),
     }
-
-
-def truth_in_layout(truth: Any) -> Array:
-    """The truth (n, 9 + 3N) in Kabir 2025's state: ``[omega_TI_T, q_TI, k1, k2, p]`` with
-    ``k1 = log(I1/I2)``, ``k2 = log(I3/I2)`` (eq. 7; see :func:`euler_rhs_k`)."""
-    I = np.diag(np.asarray(truth.inertia_T, dtype=float))
-    n = len(truth.t)
-    k = np.array([np.log(I[0] / I[1]), np.log(I[2] / I[1])])
-    f = np.asarray(truth.features_T, dtype=float).ravel()
-    return np.concatenate(
-        [truth.omega_TI_T, truth.q_TI, np.tile(k, (n, 1)), np.tile(f, (n, 1))], axis=1
-    )
 
 
 class KabirUKF:
@@ -951,10 +947,11 @@ class KabirUKF:
         z, R = stereo_measurements(measurements, tun)
         return run_ukf(scenario, measurements.t, z, R, self.variant, tun, geom)
 
-    def run_batch(self, scenario: Any, measurements: list, rngs: list, truths: list) -> list:
-        """Many runs at once (vectorised over runs); one (RunErrors, skipped) per run."""
-        from tumblenav.metrics import RunErrors, error_magnitudes
-
+    def run_batch(
+        self, scenario: Any, measurements: list, rngs: list, p_every: int = 1
+    ) -> list[EstimateHistory]:
+        """Many runs at once (vectorised over runs): the same histories as :meth:`run`
+        (``p_every`` is accepted for the campaign runner; every covariance is kept)."""
         check_scenario(scenario)
         tun = parse_tuning(scenario.estimator.tuning)
         t = measurements[0].t
@@ -977,36 +974,10 @@ class KabirUKF:
             Rs.append(R)
             x0s.append(x0)
             P0s.append(P0)
-        N = zs[0].shape[1]
-        x_true = np.stack([truth_in_layout(tr) for tr in truths])
         res = _filter(
-            t,
-            np.stack(zs),
-            np.stack(Rs),
-            np.stack(x0s),
-            np.stack(P0s),
-            g0,
-            tun,
-            self.variant,
-            x_true=x_true,
+            t, np.stack(zs), np.stack(Rs), np.stack(x0s), np.stack(P0s), g0, tun, self.variant
         )
-        lay = layout(N)
-        mags = error_magnitudes(res["err"], lay)
-        out = []
-        for b in range(len(measurements)):
-            r = RunErrors(
-                t=t,
-                errors={k: v[b] for k, v in mags.items()},
-                nees=res["nees"][b],
-                nees_dof=lay.dim,
-                nis=res["nis"][b],
-                nis_dof=res["nis_dof"][b],
-            )
-            out.append((r, _skipped(res["usable"][b], res, b)))
-        return out
-
-    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
-        return truth_in_layout(truth)
+        return [_history(t, res, b, self.variant, tun, x0s[b]) for b in range(len(measurements))]
 
 
 register("ukf")(lambda: KabirUKF("additive"))

@@ -205,8 +205,5 @@ class KabirUKFGP:
             )
         return hist
 
-    def truth_state(self, truth: Any, history: EstimateHistory) -> Array:
-        return ukf.truth_in_layout(truth)
-
 
 register("ukf-gp")(KabirUKFGP)

@@ -281,7 +281,7 @@ def _gp_figures(output: Path, cases: list[dict[str, Any]]) -> None:
 def _filter_figures(output: Path, runs: int) -> None:
     import matplotlib.pyplot as plt
 
-    from tumblenav import metrics
+    from tumblenav.evaluation import metrics
 
     shown = ("ukf", "benchmark", "ukf-gp")
     per_run: dict[tuple[float, str], dict[str, np.ndarray]] = {}

@@ -1,5 +1,7 @@
 """Errors against the truth, RMSE over time and over runs, NEES and NIS with chi-square bounds.
 
+Part of :mod:`tumblenav.evaluation`, the stage after the estimator: no estimator imports it.
+
 Quantities reported (summary.json keys): ``attitude_deg`` (rotation angle of
 ``q_true (x) conj(q_hat)``), ``rate_deg_s``, ``position_m``, ``velocity_m_s`` (Euclidean norms
 of the error vectors), ``inertia`` (norm of the inertia-parameter error), ``features_m`` (RMS
@@ -67,43 +69,43 @@ def error_magnitudes(dx: Array, lay) -> dict[str, Array]:
     return out
 
 
-def run_errors(history: EstimateHistory, x_true: Array) -> RunErrors:
-    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout."""
+def run_errors(history: EstimateHistory, x_true: Array, nees_every: int = 1) -> RunErrors:
+    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout.
+    The NEES is evaluated every ``nees_every`` epochs (NaN in between)."""
     lay = history.layout
     dx = lay.boxminus(x_true, history.x)  # (n, dim)
+    e = np.full(len(dx), np.nan)
+    if history.P_every > 1:  # the covariance is there every P_every epochs only
+        e[:: history.P_every] = nees(dx[:: history.P_every], history.P)
+    else:
+        e[::nees_every] = nees(dx[::nees_every], history.P[::nees_every])
     return RunErrors(
         t=history.t,
         errors=error_magnitudes(dx, lay),
-        nees=nees(dx, history.P),
+        nees=e,
         nees_dof=lay.dim,
         nis=history.nis,
         nis_dof=history.nis_dof,
     )
 
 
-def evaluate_run(estimator, history: EstimateHistory, truth) -> RunErrors:
-    """The one evaluation of an estimator run against its truth, for ``estimate`` and for
-    campaigns alike: :func:`run_errors` in the estimator's frame (its ``truth_state``), plus the
-    DPACF frame's own attitude error (``dpacf_attitude_deg``, Hu 2024 Fig. 5) when the run
-    carries one. Batched estimators (``run_batch``) return the same quantities (tested)."""
-    x_true = estimator.truth_state(truth, history)
-    r = run_errors(history, x_true)
-    q_dpacf = history.info.get("dpacf_q_TI")
-    if q_dpacf is not None:
-        q_true = x_true[:, history.layout.nom("attitude")]
-        r.errors["dpacf_attitude_deg"] = np.degrees(attitude_error_rad(q_true, q_dpacf))
-    return r
-
-
 def nees(dx: Array, P: Array) -> Array:
-    """Normalised estimation error squared ``dx^T P^-1 dx`` per row; NaN where undefined."""
+    """Normalised estimation error squared ``dx^T P^-1 dx`` per row; NaN where undefined
+    (a non-finite error or covariance, or a singular covariance)."""
     out = np.full(dx.shape[0], np.nan)
     ok = np.all(np.isfinite(dx), axis=-1) & np.all(np.isfinite(P), axis=(-1, -2))
-    for k in np.flatnonzero(ok):
-        try:
-            out[k] = dx[k] @ np.linalg.solve(P[k], dx[k])
-        except np.linalg.LinAlgError:
-            out[k] = np.nan
+    idx = np.flatnonzero(ok)
+    if not len(idx):
+        return out
+    try:
+        sol = np.linalg.solve(P[idx], dx[idx][..., None])[..., 0]
+        out[idx] = np.sum(dx[idx] * sol, axis=-1)
+    except np.linalg.LinAlgError:  # one singular covariance: row by row
+        for k in idx:
+            try:
+                out[k] = dx[k] @ np.linalg.solve(P[k], dx[k])
+            except np.linalg.LinAlgError:
+                out[k] = np.nan
     return out
 
 
