@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint venv clean
+.PHONY: demo test lint venv clean docs
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,12 @@ lint: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(PY) -m pytest -q
+	$(MAKE) docs
+
+# the user guide and API reference (mkdocs.yml) into out/site; a warning fails it (not with
+# --quiet: it hides the warnings from the strict check, and the build passes)
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict -d out/site
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache .hypothesis
