@@ -148,6 +148,6 @@ def test_default_inertia_sigma_matches_the_initial_guess():
     """A sphere start is 0.3-0.5 off a real satellite's ratios: its default P0 sigma is 0.5;
     a start drawn near the truth (Yu 2019's protocol) keeps Yu's 0.1; a given value wins."""
     assert D._sigma_inertia(D.DepthTuning()) == 0.5
-    assert D._sigma_inertia(D.DepthTuning(inertia_init="scenario")) == 0.1
+    assert D._sigma_inertia(D.DepthTuning(inertia_init="given")) == 0.1
     assert D._sigma_inertia(D.DepthTuning(P0_sigma_inertia=0.2)) == 0.2
     assert np.allclose(np.diag(D._P0(D.DepthTuning()))[6:11], 0.25)

@@ -19,6 +19,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators import base
 from tumblenav.estimators import ukf as U
 from tumblenav.evaluation import alignment, metrics
+from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 from tumblenav.testing import numerical_jacobian
@@ -34,8 +35,16 @@ U3 = np.array([2 / 3, 1 / 3, 2 / 3])  # Kabir 2025 Sec. 3: omega0 = 2 pi f_T U3
 
 
 def kabir(f_T=0.075, duration=400.0, occlusion=None, **tuning):
-    """kabir2025 at tumbling frequency f_T with the paper's tuning for it (Sec. 3.2)."""
-    return load_scenario("kabir2025").with_updates(
+    """kabir2025 at tumbling frequency f_T with the paper's tuning for it (Sec. 3.2) and its
+    truth-based assumptions (known mass centre, the paper's start, as the recipe makes them;
+    ``init="triangulated"`` keeps the measurement-only start). Keys of ``start`` in
+    ``tuning`` (rate_factor, q_offset_wxyz, feature_offset_m) shape the paper's start."""
+    start = {
+        k: tuning.pop(k)
+        for k in ("rate_factor", "q_offset_wxyz", "feature_offset_m")
+        if k in tuning
+    }
+    s = load_scenario("kabir2025").with_updates(
         duration_s=duration,
         **{
             "target.omega0_T_rad_s": list(2 * np.pi * f_T * U3),
@@ -43,13 +52,18 @@ def kabir(f_T=0.075, duration=400.0, occlusion=None, **tuning):
             "estimator.tuning": {**U.paper_tuning(f_T), **tuning},
         },
     )
+    if tuning.get("init") == "triangulated":
+        return s.with_updates(
+            **{"estimator.tuning": {**s.estimator.tuning, **K.known_mass_centre(s)}}
+        )
+    return K.with_paper_assumptions(s, **start)
 
 
 # 10 % of the paper's initial errors (Sec. 3.2) with P0 standard deviations scaled alike
 NEAR = {
-    "init_rate_factor": 1.075,
-    "init_feature_offset_m": 0.07,
-    "init_q_offset_wxyz": list(
+    "rate_factor": 1.075,
+    "feature_offset_m": 0.07,
+    "q_offset_wxyz": list(
         rot.to_scalar_first(rot.exp_quat(0.1 * rot.log_quat([0.1386, 0.1386, 0.1386, 0.9707])))
     ),
     "p0_omega_var": 0.1225e-2,
@@ -141,7 +155,7 @@ def test_paper_tuning_per_frequency_and_bad_input():
         "q_quat_var": 4e-6,
         "sigma_flow_rad_s": 1e-3,
     }
-    assert U.tumbling_frequency_hz(kabir(0.125)) == pytest.approx(0.125)
+    assert K.tumbling_frequency_hz(kabir(0.125)) == pytest.approx(0.125)
     with pytest.raises(InputError, match="0.1 Hz"):
         U.paper_tuning(0.1)
     with pytest.raises(InputError, match="estimator.tuning.alpah: unknown key"):

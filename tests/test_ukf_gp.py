@@ -16,6 +16,7 @@ from tumblenav.campaign.store import run_seed
 from tumblenav.estimators import base, ukf_gp
 from tumblenav.estimators import ukf as U
 from tumblenav.evaluation import alignment, metrics
+from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
@@ -41,14 +42,17 @@ def one_blas_thread():
 
 def kabir(**gp_tuning):
     """kabir2025 at F_T with the paper's tuning for it (Sec. 3.2), features lost at LOSS."""
-    return load_scenario("kabir2025").with_updates(
+    start = {k: NEAR[k] for k in ("rate_factor", "q_offset_wxyz", "feature_offset_m")}
+    near_p0 = {k: v for k, v in NEAR.items() if k not in start}
+    s = load_scenario("kabir2025").with_updates(
         duration_s=DURATION,
         **{
             "target.omega0_T_rad_s": list(2 * np.pi * F_T * U3),
             "occlusion.loss_from_s": LOSS,
-            "estimator.tuning": {**U.paper_tuning(F_T), **NEAR, **gp_tuning},
+            "estimator.tuning": {**U.paper_tuning(F_T), **near_p0, **gp_tuning},
         },
     )
+    return K.with_paper_assumptions(s, **start)
 
 
 def attitude_error_deg(est, truth, h):

@@ -10,12 +10,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from tumblenav import evaluation, io
+from tumblenav import evaluation, io, sensors
 from tumblenav import plots as figures
 from tumblenav.campaign import runner
 from tumblenav.campaign.store import run_seed
 from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation import metrics
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
@@ -23,7 +24,6 @@ from tumblenav.simulation import (
     DepthMeasurements,
     StereoMeasurements,
     Truth,
-    make_rig,
     run_streams,
     simulate,
 )
@@ -120,7 +120,7 @@ def _load_measurements(folder: Path, scenario: Scenario):
                 "measurements by): add it to the file's global attributes, in px",
                 str(path),
             )
-        diff = _rig_differences(meas.rig, make_rig(scenario.sensor))
+        diff = _rig_differences(meas.rig, sensors.make_rig(scenario.sensor))
         if diff:
             raise InputError(
                 f"taken with another stereo rig than scenario {scenario.name}'s: "
@@ -169,7 +169,7 @@ def run_estimate(
     if getattr(est, "compiled", False) and not kernels_compiled():
         con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
     with con.status(f"{estimator} on {scenario.name} ({len(meas.t)} epochs)"):
-        hist = est.run(scenario, meas, run_streams(ss)["estimator"])
+        hist = est.run(context_from_scenario(scenario), meas, run_streams(ss)["estimator"])
     output = Path(output)
     r = evaluation.evaluate_run(hist, truth) if truth is not None else None
     x_true = evaluation.truth_state(truth, hist) if truth is not None else None

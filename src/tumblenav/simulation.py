@@ -401,15 +401,6 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
     )
 
 
-def make_rig(cfg: StereoSensorConfig) -> sensors.StereoRig:
-    res = (int(cfg.resolution_px[0]), int(cfg.resolution_px[1]))
-    if cfg.rig == "parallel":
-        return sensors.parallel_rig(cfg.focal_px, cfg.baseline_m, res, cfg.principal_point)
-    return sensors.convergent_rig(
-        cfg.focal_px, cfg.baseline_m, np.radians(cfg.toe_in_deg), res, cfg.principal_point
-    )
-
-
 def visibility(scenario: Scenario, truth: Truth, rig: sensors.StereoRig) -> NDArray[np.bool_]:
     """(n, 2, N) occlusion mask (True = not occluded) from the scenario's occlusion settings."""
     occ = scenario.occlusion
@@ -434,7 +425,7 @@ def simulate_stereo(
     cfg = scenario.sensor
     if not isinstance(cfg, StereoSensorConfig):
         raise InputError(f"scenario {scenario.name} has a {cfg.kind} sensor, not a stereo rig")
-    rig = make_rig(cfg)
+    rig = sensors.make_rig(cfg)
     noise_px = cfg.noise.sigma_px(cfg.focal_px)
     meas = sensors.measure(
         rig, truth.features_C, rng_sensor, noise_px, visible=visibility(scenario, truth, rig)
@@ -526,18 +517,7 @@ def target_model(scenario: Scenario):
     """The target's geometry (procedural satellite or the user's mesh)."""
     from tumblenav import target_model as tm
 
-    cfg = scenario.target.model
-    if cfg.kind == "file":
-        return tm.load_mesh(cfg.path)
-    return tm.procedural_satellite(
-        bus_m=tuple(cfg.bus_m),
-        panel_m=tuple(cfg.panel_m),
-        panel_thickness_m=cfg.panel_thickness_m,
-        ring_radius_m=cfg.ring_radius_m,
-        ring_height_m=cfg.ring_height_m,
-        nozzle_radius_m=cfg.nozzle_radius_m,
-        nozzle_height_m=cfg.nozzle_height_m,
-    )
+    return tm.from_config(scenario.target.model)
 
 
 def simulate_depth(

@@ -142,3 +142,19 @@ def _flip_z() -> Array:
     T = np.eye(4)
     T[1, 1] = T[2, 2] = -1.0
     return T
+
+
+def from_config(cfg) -> TargetModel:
+    """The target's geometry from a scenario's ``target.model`` settings (procedural
+    satellite or the user's mesh file): the geometry only, no motion."""
+    if cfg.kind == "file":
+        return load_mesh(cfg.path)
+    return procedural_satellite(
+        bus_m=tuple(cfg.bus_m),
+        panel_m=tuple(cfg.panel_m),
+        panel_thickness_m=cfg.panel_thickness_m,
+        ring_radius_m=cfg.ring_radius_m,
+        ring_height_m=cfg.ring_height_m,
+        nozzle_radius_m=cfg.nozzle_radius_m,
+        nozzle_height_m=cfg.nozzle_height_m,
+    )

@@ -44,6 +44,7 @@ from tumblenav import evaluation, io
 from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.errors import InputError, Interrupted
 from tumblenav.estimators import base as est_base
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation import metrics
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, scenario_to_yaml
@@ -59,6 +60,7 @@ def evaluate_runs(
 ) -> list[tuple[int, Any, str | None]]:
     """Simulate, estimate and evaluate runs ``ks``; returns (k, RunErrors | None, error)."""
     est = est_base.get(estimator_name)
+    context = context_from_scenario(scenario)  # what the estimator may know: no truth
     sims, out = [], []
     for k in ks:
         try:
@@ -71,7 +73,7 @@ def evaluate_runs(
     if batch is not None and sims:
         try:
             p_every = evaluation.nees_every(sims[0][2].t)  # the covariance where NEES needs it
-            hists = batch(scenario, [s[2] for s in sims], [s[3] for s in sims], p_every=p_every)
+            hists = batch(context, [s[2] for s in sims], [s[3] for s in sims], p_every=p_every)
             for (k, truth, *_), h in zip(sims, hists, strict=True):
                 out.append((k, (evaluation.evaluate_run(h, truth), h.skipped), None))
             return out
@@ -79,7 +81,7 @@ def evaluate_runs(
             out = [o for o in out if o[1] is None]
     for k, truth, meas, rng in sims:
         try:
-            hist = est.run(scenario, meas, rng)
+            hist = est.run(context, meas, rng)
             out.append((k, (evaluation.evaluate_run(hist, truth), hist.skipped), None))
         except Exception as exc:  # noqa: BLE001
             out.append((k, None, _short(exc)))

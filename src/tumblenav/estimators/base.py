@@ -237,6 +237,8 @@ def check_names(names: Sequence[str]) -> None:
 def get_for(name: str, scenario: Any) -> Estimator:
     """The estimator ``name``, checked against ``scenario`` (:meth:`Estimator.check`): an
     :class:`InputError` before any work if it cannot run there."""
+    from tumblenav.estimators.context import context_from_scenario
+
     est = get(name)
-    est.check(scenario)
+    est.check(context_from_scenario(scenario))
     return est

@@ -32,6 +32,7 @@ from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends.depth_pose import consistent_start, model_symmetries, pose_fixes
 
 Array = NDArray[np.float64]
@@ -66,17 +67,28 @@ class DepthTuning(BaseModel):
     P0_sigma_inertia: float | None = Field(
         None,
         gt=0,
-        description="default: 0.1 (Yu 2019) with inertia_init 'scenario', 0.5 with 'sphere' "
+        description="default: 0.1 (Yu 2019) with inertia_init 'given', 0.5 with 'sphere' "
         "(a sphere is 0.3-0.5 off a typical satellite's ratios)",
     )
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
     plane_threshold_m: float | None = Field(None, gt=0, description="default: 3 x range noise")
     gate_probability: float = Field(0.9999, gt=0, lt=1)
-    inertia_init: Literal["sphere", "scenario"] = Field(
+    inertia_init: Literal["sphere", "given"] = Field(
         "sphere",
         description="initial inertia ratios: 'sphere' (1, 1, 0, 0, 0: nothing known) or "
-        "'scenario' (the scenario's ratios plus an error drawn from P0, the protocol Yu 2019's "
-        "P0 = 0.1^2 on the ratios implies)",
+        "'given' (inertia_init_ratios, a prior the user states)",
+    )
+    inertia_init_ratios: list[float] = Field(
+        [1.0, 1.0, 0.0, 0.0, 0.0],
+        min_length=5,
+        max_length=5,
+        description="with inertia_init 'given': [Iyy/Ixx, Izz/Ixx, Ixy/Ixx, Ixz/Ixx, Iyz/Ixx]",
+    )
+    inertia_init_perturb: bool = Field(
+        False,
+        description="add an error drawn from P0 to the given ratios (Yu 2019's protocol: its "
+        "initial state is 'the truth corrupted by initial errors'; the yu2019 recipe gives the "
+        "true ratios with this on)",
     )
     position_noise_scale: float = Field(
         4.0,
@@ -212,25 +224,24 @@ def _P0(tun: DepthTuning) -> Array:
     )
 
 
-def _initial_inertia(scenario: Any, tun: DepthTuning, rng: np.random.Generator) -> Array:
-    """Initial inertia ratios (Yu 2019 eq. 29): a sphere, or the scenario's ratios with an
-    error drawn from P0.  The scenario's T axes are the model's; the filter's frame is one of
-    the model's symmetric frames, which for half turns leaves the diagonal ratios unchanged
-    (and the products of inertia, zero for a principal frame, too)."""
+def _initial_inertia(tun: DepthTuning, rng: np.random.Generator) -> Array:
+    """Initial inertia ratios (Yu 2019 eq. 29): a sphere, or the given ratios (optionally
+    with an error drawn from P0, Yu's protocol).  The filter's frame is one of the model's
+    symmetric frames, which for half turns leaves the diagonal ratios unchanged (and the
+    products of inertia, zero for a principal frame, too)."""
     if tun.inertia_init == "sphere":
         return np.array([1.0, 1.0, 0.0, 0.0, 0.0])
-    I = np.asarray(scenario.target.inertia_kg_m2, float)
-    I = np.diag(I) if I.ndim == 1 else I
-    I = I / I[0, 0]
-    true = np.array([I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])
-    return true + _sigma_inertia(tun) * rng.normal(size=5)
+    given = np.asarray(tun.inertia_init_ratios, float)
+    if not tun.inertia_init_perturb:
+        return given
+    return given + _sigma_inertia(tun) * rng.normal(size=5)
 
 
 def _sigma_inertia(tun: DepthTuning) -> float:
     """P0 sigma of the ratios: as given, else one that matches the initial guess."""
     if tun.P0_sigma_inertia is not None:
         return tun.P0_sigma_inertia
-    return 0.1 if tun.inertia_init == "scenario" else 0.5
+    return 0.1 if tun.inertia_init == "given" else 0.5
 
 
 def fix_covariance(fx, sigma: float) -> tuple[Array, Array]:
@@ -278,6 +289,7 @@ class DepthEKF:
     description = "Yu 2019: RANSAC rectangles -> coarse pose -> EKF with mass-centre offset"
 
     def check(self, scenario: Any) -> None:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         if scenario.sensor.kind != "depth":
             raise InputError(
                 f"ekf-depth needs a depth sensor; scenario {scenario.name} has a "
@@ -286,11 +298,17 @@ class DepthEKF:
         base_parse_tuning(scenario.estimator.tuning, DepthTuning)
 
     def run(self, scenario: Any, meas: Any, rng: np.random.Generator) -> EstimateHistory:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         self.check(scenario)
         tun = base_parse_tuning(scenario.estimator.tuning, DepthTuning)
-        from tumblenav.simulation import target_model
+        from tumblenav.target_model import from_config
 
-        model = target_model(scenario)
+        if scenario.target_model is None:
+            raise InputError(
+                "ekf-depth needs the target's geometry model (Yu 2019 recognises its "
+                "rectangles): give target.model in the scenario"
+            )
+        model = from_config(scenario.target_model)
         sigma = scenario.sensor.range_noise_m
         thr = tun.plane_threshold_m or max(3 * sigma, 1e-3)
         n_orb = scenario.chaser.orbit.mean_motion_rad_s if scenario.chaser.orbit else 0.0
@@ -332,7 +350,7 @@ class DepthEKF:
                 R_SM0, p0 = consistent_start(fixes)
                 x = np.zeros(LAYOUT.nominal_dim)
                 x[0:4] = rot.matrix_to_quat((R_LI[k].T @ R_LS @ R_SM0).T)
-                x[7:12] = _initial_inertia(scenario, tun, rng)
+                x[7:12] = _initial_inertia(tun, rng)
                 x[12:15] = R_LS @ p0
                 P = _P0(tun)
                 out_x[k], out_P[k] = x, P

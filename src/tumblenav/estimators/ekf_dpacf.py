@@ -45,6 +45,7 @@ from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import stereo_points
 from tumblenav.frontends.inertia import branch_statistics, inertia_ratios
 
@@ -955,6 +956,7 @@ def run_filter(
     batched numpy loop below; both give the same result (tests). ``auto`` takes the compiled
     one wherever it covers the tuning (eq. 31 attitude measurement, no innovation gate).
     ``None``: the module's ``ENGINE`` (benchmarks set it to time the numpy loop)."""
+    scenario = context_from_scenario(scenario)  # never the target's truth
     engine = engine or ENGINE
     tun = parse_tuning(scenario.estimator.tuning)
     if tun.first_estimates_jacobian is None:
@@ -1566,6 +1568,7 @@ class HuEKF:
         )
 
     def check(self, scenario: Any) -> None:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         if scenario.sensor.kind != "stereo":
             raise InputError(
                 f"{self.name} needs a stereo sensor; scenario {scenario.name} has "
@@ -1574,6 +1577,7 @@ class HuEKF:
         parse_tuning(scenario.estimator.tuning)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         self.check(scenario)
         return histories(run_filter(scenario, [measurements], self.use_dpacf), scenario)[0]
 
@@ -1582,6 +1586,7 @@ class HuEKF:
     ) -> list[EstimateHistory]:
         """Many runs at once (vectorised); the same histories as :meth:`run`, with the
         covariance reported every ``p_every`` epochs (NaN in between)."""
+        scenario = context_from_scenario(scenario)  # never the target's truth
         self.check(scenario)
         res = run_filter(scenario, measurements, self.use_dpacf, p_every=p_every)
         return histories(res, scenario)

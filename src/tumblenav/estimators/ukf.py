@@ -83,6 +83,7 @@ from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import projections as proj
 
 Array = NDArray[np.float64]
@@ -102,7 +103,6 @@ __all__ = [
     "propagate_rotation",
     "run_ukf",
     "stereo_measurements",
-    "tumbling_frequency_hz",
 ]
 
 # Kabir 2025 Sec. 3.2, per tumbling frequency f_T (Hz): Q of omega (rad^2/s^2), Q of each
@@ -131,25 +131,39 @@ def layout(n_features: int) -> StateLayout:
 
 
 class KabirTuning(BaseModel):
-    """``estimator.tuning`` keys of ukf / ukf-mult (all optional; defaults: Kabir 2025
-    Sec. 3.2 for f_T = 0.025 Hz; use :func:`paper_tuning` for the other frequencies)."""
+    """``estimator.tuning`` keys of ukf / ukf-mult (defaults: Kabir 2025 Sec. 3.2 for
+    f_T = 0.025 Hz; use :func:`paper_tuning` for the other frequencies). The known mass
+    centre, ``mass_centre_L_m``, is required: Kabir 2025 assumes it."""
 
     model_config = ConfigDict(extra="forbid")
-    init: Literal["paper", "triangulated"] = Field(
-        "paper",
-        description="'paper': Kabir 2025 Sec. 3.2's guess made from the scenario's true initial "
-        "values (omega x init_rate_factor, the printed 27.8 deg attitude offset, k = 0, "
-        "features + init_feature_offset_m); 'triangulated': from the first epoch's measurements "
-        "alone (q = identity, features triangulated, omega from the optical flow, k = 0)",
+    mass_centre_L_m: list[float] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="the target's mass-centre position at t = 0 in L (= I), m: Kabir 2025 "
+        "Sec. 2.1 assumes it known; required (the estimator never reads the target's truth)",
     )
-    init_rate_factor: float = Field(1.75, description="paper init: omega_hat0 / omega_true0")
-    init_feature_offset_m: float = Field(0.7, description="paper init: added to each component")
-    init_q_offset_wxyz: list[float] = Field(
-        [0.9707, 0.1386, 0.1386, 0.1386],
-        min_length=4,
-        max_length=4,
-        description="paper init: q_hat0 = offset (x) q0_true, scalar first as printed (the "
-        "paper's guess against its q0 = [1, 0, 0, 0]: 27.8 deg about [1, 1, 1])",
+    mass_centre_velocity_L_m_s: list[float] = Field(
+        [0.0, 0.0, 0.0],
+        min_length=3,
+        max_length=3,
+        description="its constant velocity in L, m/s (Kabir 2025: an inertially fixed CM)",
+    )
+    init: Literal["triangulated", "given"] = Field(
+        "triangulated",
+        description="'triangulated': from the first epochs' measurements alone (q = identity, "
+        "features triangulated, omega from the optical flow, k = 0); 'given': init_omega_rad_s, "
+        "init_q_TI, init_features_m (the kabir2025 recipe gives Kabir 2025 Sec. 3.2's "
+        "truth-based guess this way: tumblenav.papers.kabir2025.paper_start)",
+    )
+    init_omega_rad_s: list[float] = Field(
+        [0.0, 0.0, 0.0], min_length=3, max_length=3, description="given init: omega_TI_T"
+    )
+    init_q_TI: list[float] = Field(
+        [0.0, 0.0, 0.0, 1.0], min_length=4, max_length=4, description="given init: [x,y,z,w]"
+    )
+    init_features_m: list[list[float]] = Field(
+        [], description="given init: each feature's position in T, m (one [x, y, z] each)"
     )
     alpha: float = Field(0.1, gt=0, le=1, description="unscented spread (Sec. 3.2)")
     beta: float = Field(2.0, ge=0)
@@ -200,12 +214,6 @@ def paper_tuning(f_T_hz: float) -> dict[str, float]:
         f"Kabir 2025 tunes only f_T = {', '.join(map(str, _PAPER_PER_FREQUENCY))} Hz; "
         f"got {f_T_hz:g} Hz"
     )
-
-
-def tumbling_frequency_hz(scenario: Any) -> float:
-    """``f_T = |omega0| / (2 pi)``: Kabir 2025 Sec. 3 writes ``omega0 = 2 pi f_T u`` with the
-    unit vector ``u = [2/3, 1/3, 2/3]`` (printed rounded to [0.67, 0.33, 0.67])."""
-    return float(np.linalg.norm(scenario.target.omega0_T_rad_s) / (2.0 * np.pi))
 
 
 # --- the model -----------------------------------------------------------------------------
@@ -281,8 +289,27 @@ class KabirGeometry:
     centres_x: Array
 
 
+def _mass_centre(scenario: Any) -> tuple[Array, Array] | None:
+    """The settings' known mass centre ``(r0_L (3,), v_L (3,))``, or None if not given (read
+    from the raw settings: ukf-gp's extend ukf's, see :class:`KabirTuning`)."""
+    raw = scenario.estimator.tuning or {}
+    if raw.get("mass_centre_L_m") is None:
+        return None
+    fields = KabirTuning.model_fields
+    r0 = raw["mass_centre_L_m"]
+    v = raw.get("mass_centre_velocity_L_m_s", fields["mass_centre_velocity_L_m_s"].default)
+    try:
+        r0_L, v_L = np.asarray(r0, float).reshape(3), np.asarray(v, float).reshape(3)
+    except (TypeError, ValueError):
+        raise InputError(
+            "estimator.tuning.mass_centre_L_m / mass_centre_velocity_L_m_s: three numbers each"
+        ) from None
+    return r0_L, v_L
+
+
 def check_scenario(scenario: Any) -> None:
     """What Kabir 2025's filters need (Sec. 2.1), checked before anything else is read."""
+    scenario = context_from_scenario(scenario)  # never the target's truth
     if scenario.sensor.kind != "stereo":
         raise InputError(
             f"Kabir 2025's UKF needs a stereo rig; scenario {scenario.name} has a "
@@ -293,6 +320,12 @@ def check_scenario(scenario: Any) -> None:
             "Kabir 2025's UKF assumes an inertially fixed chaser (Sec. 2.1): set chaser.orbit: "
             f"null (scenario {scenario.name} has an orbit)"
         )
+    if _mass_centre(scenario) is None:
+        raise InputError(
+            "Kabir 2025's UKF assumes the target's mass-centre position known (Sec. 2.1): give "
+            "it as estimator.tuning.mass_centre_L_m (m, in L at t = 0) and, if it moves, "
+            "mass_centre_velocity_L_m_s"
+        )
     if scenario.sensor.rig != "parallel":
         raise InputError(
             "Kabir 2025's observation model (eq. 16-27) needs a parallel stereo rig; scenario "
@@ -301,17 +334,18 @@ def check_scenario(scenario: Any) -> None:
 
 
 def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
-    """The known geometry at times ``t``: the mass centre from the scenario
-    (``r0_L_m + t v0_L_m_s``, L = I since the chaser has no orbit), the rig attitude from the
+    """The known geometry at times ``t``: the mass centre from the settings
+    (``mass_centre_L_m + t mass_centre_velocity_L_m_s``, L = I since the chaser has no orbit:
+    Kabir 2025's assumption, stated by the user), the rig attitude from the
     measurements' ``q_CL``/``q_LI`` (else from the scenario's camera mount), the rig from the
     measurements (else from the scenario's sensor)."""
+    scenario = context_from_scenario(scenario)  # never the target's truth
     from tumblenav import sensors
-    from tumblenav.simulation import make_rig
 
     check_scenario(scenario)
     t = np.asarray(t, dtype=float)
-    tg = scenario.target
-    r_L = np.asarray(tg.r0_L_m, float) + np.outer(t, tg.v0_L_m_s)
+    r0_L, v_L = _mass_centre(scenario)
+    r_L = r0_L + np.outer(t, v_L)
     if meas is not None:
         R_CI = rot.quat_to_matrix(rot.quat_multiply(meas.q_CL, meas.q_LI))
         rig = meas.rig
@@ -321,7 +355,7 @@ def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
         else:
             R_LC = np.broadcast_to(scenario.chaser.R_LC_fixed, (len(t), 3, 3))
         R_CI = np.swapaxes(R_LC, -1, -2)
-        rig = make_rig(scenario.sensor)
+        rig = sensors.make_rig(scenario.sensor)
     R_CI = np.asarray(R_CI).reshape(-1, 3, 3)
     if np.abs(R_CI - R_CI[0]).max() > 1e-9:
         raise InputError(
@@ -332,7 +366,7 @@ def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
     return KabirGeometry(
         R_CI=R,
         rho0_C=r_L @ R.T,
-        rho0_dot_C=np.broadcast_to(R @ np.asarray(tg.v0_L_m_s, float), (len(t), 3)).copy(),
+        rho0_dot_C=np.broadcast_to(R @ v_L, (len(t), 3)).copy(),
         centres_x=proj.parallel_centres_x(rig),
     )
 
@@ -416,43 +450,30 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
 # --- initial state -------------------------------------------------------------------------
 
 
-def _true_features(scenario: Any) -> Array:
-    from tumblenav.scenario import RandomFeatures
-    from tumblenav.simulation import draw_features
-
-    f = scenario.target.features_T_m
-    if isinstance(f, RandomFeatures) and f.seed is None:
-        raise InputError(
-            "estimator.tuning.init: 'paper' perturbs the true features, which need "
-            "target.features_T_m listed or seeded; use init: triangulated"
-        )
-    return draw_features(scenario, np.random.default_rng(0))[0]
-
-
 def initial_state(
     scenario: Any, t: Array, z: Array, geom: KabirGeometry, tun: KabirTuning, variant: Variant
 ) -> tuple[Array, Array]:
     """``x0`` (nominal) and ``P0`` (24x24 for ``additive``, 23x23 for ``mult``) at ``t[0]``.
 
-    ``init: paper`` is Kabir 2025 Sec. 3.2: ``omega0 x 1.75``, ``q = offset (x) q0`` (the
-    printed guess ``[0.9707, 0.1386, 0.1386, 0.1386]`` is the offset from the paper's true
-    ``q0 = [1, 0, 0, 0]``), ``k = 0``, ``p + 0.7 m``, from the scenario's true values.
-    ``init: triangulated`` uses the measurements ``z`` (n, N, 9) of the first epochs only.
+    ``init: triangulated`` uses the measurements ``z`` (n, N, 9) of the first epochs only;
+    ``init: given`` the settings' ``init_omega_rad_s``, ``init_q_TI``, ``init_features_m``
+    (``k = 0``), e.g. Kabir 2025 Sec. 3.2's truth-based guess made by the kabir2025 recipe.
     """
     N = z.shape[1]
     x = np.zeros(9 + 3 * N)
-    if tun.init == "paper":
-        tg = scenario.target
-        x[0:3] = tun.init_rate_factor * np.asarray(tg.omega0_T_rad_s, float)
-        off = np.asarray(tun.init_q_offset_wxyz, dtype=float)
-        if not np.linalg.norm(off) > 0:
-            raise InputError("estimator.tuning.init_q_offset_wxyz: must be a nonzero quaternion")
-        off = rot.quat_normalize(rot.from_scalar_first(off))
-        x[3:7] = rot.quat_multiply(off, rot.quat_normalize(tg.q0_TI))
-        p = _true_features(scenario)
+    if tun.init == "given":
+        x[0:3] = tun.init_omega_rad_s
+        q = np.asarray(tun.init_q_TI, dtype=float)
+        if not np.linalg.norm(q) > 0:
+            raise InputError("estimator.tuning.init_q_TI: must be a nonzero quaternion")
+        x[3:7] = rot.quat_normalize(q)
+        p = np.asarray(tun.init_features_m, dtype=float).reshape(-1, 3)
         if p.shape[0] != N:
-            raise InputError(f"the measurements have {N} features, the scenario {p.shape[0]}")
-        x[9:] = (p + tun.init_feature_offset_m).ravel()
+            raise InputError(
+                f"estimator.tuning.init_features_m: {p.shape[0]} features given, the "
+                f"measurements have {N}"
+            )
+        x[9:] = p.ravel()
     else:
         x[0:3], x[3:7], x[9:] = _triangulated_start(t, z, geom)
     if variant == "additive":
@@ -836,7 +857,7 @@ def run_ukf(
     Parameters
     ----------
     scenario : Scenario
-        For the known geometry (mass centre, rig) and, with ``init: paper``, the initial guess.
+        For the known geometry (the mass centre from the settings, the rig).
     t : (n,) s
         Epochs; the filter starts at ``t[0]`` (update with ``z[0]``), then predicts and
         updates at every epoch.
@@ -860,6 +881,7 @@ def run_ukf(
     EstimateHistory
         Layout :func:`layout`; ``P`` is the 23-dim error-state covariance for both variants.
     """
+    scenario = context_from_scenario(scenario)  # never the target's truth
     if variant not in ("additive", "mult"):
         raise ValueError(f"variant must be 'additive' or 'mult', got {variant!r}")
     tun = tuning if tuning is not None else parse_tuning(scenario.estimator.tuning)
@@ -937,10 +959,12 @@ class KabirUKF:
         )
 
     def check(self, scenario: Any) -> None:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         check_scenario(scenario)
         parse_tuning(scenario.estimator.tuning)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         check_scenario(scenario)
         tun = parse_tuning(scenario.estimator.tuning)
         geom = geometry(scenario, measurements.t, measurements)
@@ -952,6 +976,7 @@ class KabirUKF:
     ) -> list[EstimateHistory]:
         """Many runs at once (vectorised over runs): the same histories as :meth:`run`
         (``p_every`` is accepted for the campaign runner; every covariance is kept)."""
+        scenario = context_from_scenario(scenario)  # never the target's truth
         check_scenario(scenario)
         tun = parse_tuning(scenario.estimator.tuning)
         t = measurements[0].t

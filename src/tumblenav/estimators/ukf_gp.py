@@ -37,6 +37,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators import gp as gpm
 from tumblenav.estimators import ukf
 from tumblenav.estimators.base import EstimateHistory, register
+from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import projections as proj
 
 Array = NDArray[np.float64]
@@ -167,10 +168,12 @@ class KabirUKFGP:
     )
 
     def check(self, scenario: Any) -> None:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         ukf.check_scenario(scenario)
         ukf.parse_tuning(scenario.estimator.tuning, model=UKFGPTuning)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        scenario = context_from_scenario(scenario)  # never the target's truth
         ukf.check_scenario(scenario)
         tun = ukf.parse_tuning(scenario.estimator.tuning, model=UKFGPTuning)
         assert isinstance(tun, UKFGPTuning)

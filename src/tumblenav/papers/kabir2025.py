@@ -30,6 +30,7 @@ from tumblenav import plots as figures
 from tumblenav.campaign import runner
 from tumblenav.campaign.store import CampaignStore
 from tumblenav.dynamics import polhode_period
+from tumblenav.errors import InputError
 from tumblenav.estimators import gp as gpm
 from tumblenav.estimators import ukf
 from tumblenav.frontends import projections as proj
@@ -56,16 +57,81 @@ UNIT = np.array([2.0, 1.0, 2.0]) / 3.0  # omega0 = 2 pi f_T [2/3, 1/3, 2/3] (pri
 
 
 def scenario_for(f_T_hz: float, base: Scenario | None = None) -> Scenario:
-    """The kabir2025 scenario at tumbling frequency ``f_T`` with the paper's tuning."""
+    """The kabir2025 scenario at tumbling frequency ``f_T`` with the paper's tuning and its
+    truth-based start (:func:`with_paper_assumptions`)."""
     base = base or load_scenario("kabir2025")
     tuning = {**base.estimator.tuning, **ukf.paper_tuning(f_T_hz)}
-    return base.with_updates(
+    sc = base.with_updates(
         **{
             "target.omega0_T_rad_s": (2.0 * np.pi * f_T_hz * UNIT).tolist(),
             "estimator.tuning": tuning,
             "steady_state_window_s": list(OCCLUSION_WINDOW_S),
         }
     )
+    return with_paper_assumptions(sc)
+
+
+def tumbling_frequency_hz(scenario: Scenario) -> float:
+    """``f_T = |omega0| / (2 pi)`` of the scenario's truth: Kabir 2025 Sec. 3 writes
+    ``omega0 = 2 pi f_T u`` with the unit vector ``u = [2/3, 1/3, 2/3]`` (printed rounded to
+    [0.67, 0.33, 0.67])."""
+    return float(np.linalg.norm(scenario.target.omega0_T_rad_s) / (2.0 * np.pi))
+
+
+# Kabir 2025 Sec. 3.2's initial guess relative to the truth: omega x 1.75, the attitude
+# offset [0.9707, 0.1386, 0.1386, 0.1386] (scalar first: 27.8 deg about [1, 1, 1]) against its
+# q0 = [1, 0, 0, 0], k = 0, every feature component + 0.7 m
+PAPER_RATE_FACTOR = 1.75
+PAPER_Q_OFFSET_WXYZ = (0.9707, 0.1386, 0.1386, 0.1386)
+PAPER_FEATURE_OFFSET_M = 0.7
+
+
+def known_mass_centre(scenario: Scenario) -> dict[str, Any]:
+    """Kabir 2025 Sec. 2.1's assumption that the target's mass-centre motion is known, taken
+    from the simulated truth and handed to the filter as its settings."""
+    return {
+        "mass_centre_L_m": list(map(float, scenario.target.r0_L_m)),
+        "mass_centre_velocity_L_m_s": list(map(float, scenario.target.v0_L_m_s)),
+    }
+
+
+def paper_start(
+    scenario: Scenario,
+    rate_factor: float = PAPER_RATE_FACTOR,
+    q_offset_wxyz: Any = PAPER_Q_OFFSET_WXYZ,
+    feature_offset_m: float = PAPER_FEATURE_OFFSET_M,
+) -> dict[str, Any]:
+    """Kabir 2025 Sec. 3.2's truth-based initial guess, made here from the scenario's truth
+    and handed to the filter as ``init: given`` settings: ``omega0 x rate_factor``,
+    ``q = offset (x) q0``, ``k = 0``, ``p + feature_offset_m``."""
+    from tumblenav import rotations as rot
+    from tumblenav.simulation import draw_features
+
+    tg = scenario.target
+    off = np.asarray(q_offset_wxyz, dtype=float)
+    if not np.linalg.norm(off) > 0:
+        raise InputError("the paper start's attitude offset must be a nonzero quaternion")
+    off = rot.quat_normalize(rot.from_scalar_first(off))
+    q = rot.quat_multiply(off, rot.quat_normalize(np.asarray(tg.q0_TI, float)))
+    features = draw_features(scenario, np.random.default_rng(0))[0]
+    return {
+        "init": "given",
+        "init_omega_rad_s": (rate_factor * np.asarray(tg.omega0_T_rad_s, float)).tolist(),
+        "init_q_TI": q.tolist(),
+        "init_features_m": (features + feature_offset_m).tolist(),
+    }
+
+
+def with_paper_assumptions(scenario: Scenario, **start: Any) -> Scenario:
+    """``scenario`` with Kabir 2025's truth-based assumptions in the estimator's settings:
+    the known mass centre (:func:`known_mass_centre`) and the paper's start
+    (:func:`paper_start`, its keyword arguments in ``start``)."""
+    tuning = {
+        **scenario.estimator.tuning,
+        **known_mass_centre(scenario),
+        **paper_start(scenario, **start),
+    }
+    return scenario.with_updates(**{"estimator.tuning": tuning})
 
 
 # --- GP study (Fig. 4) ---------------------------------------------------------------------

@@ -424,3 +424,13 @@ def disparity(uv: ArrayLike) -> Array:
     """
     uv = np.asarray(uv, dtype=float)
     return uv[..., 0, :, 0] - uv[..., 1, :, 0]
+
+
+def make_rig(cfg) -> StereoRig:
+    """The rig a scenario's stereo ``sensor`` settings describe (parallel or convergent)."""
+    res = (int(cfg.resolution_px[0]), int(cfg.resolution_px[1]))
+    if cfg.rig == "parallel":
+        return parallel_rig(cfg.focal_px, cfg.baseline_m, res, cfg.principal_point)
+    return convergent_rig(
+        cfg.focal_px, cfg.baseline_m, np.radians(cfg.toe_in_deg), res, cfg.principal_point
+    )
