@@ -241,12 +241,14 @@ def reproduce(
 @app.command(cls=StrictCommand)
 def estimators() -> None:
     """List the estimators and what each needs."""
-    from tumblenav.estimators.base import available
+    from tumblenav.estimators.base import PLUGIN_ERRORS, available, plugin_source
 
-    table = Table("name", "needs", "description")
+    table = Table("name", "needs", "description", "from")
     for name, est in available().items():
-        table.add_row(name, est.needs, est.description)
+        table.add_row(name, est.needs, est.description, plugin_source(name) or "built in")
     out.print(table)
+    for name, why in PLUGIN_ERRORS.items():
+        err.print(f"[bold yellow]plugin {escape(name)} not loaded:[/] {escape(why)}")
 
 
 @app.command(cls=StrictCommand)

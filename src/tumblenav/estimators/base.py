@@ -193,9 +193,40 @@ def register(name: str) -> Callable[[Callable[[], Estimator]], Callable[[], Esti
     return deco
 
 
+ENTRY_POINT_GROUP = "tumblenav.estimators"
+_PLUGINS: dict[str, str] = {}  # estimator name -> the distribution that provides it
+PLUGIN_ERRORS: dict[str, str] = {}  # entry point name -> why it could not be loaded
+
+
 def _load_builtin() -> None:
-    # Importing the modules registers their estimators.
+    """Register the built-in estimators (importing their modules does it) and, once, the
+    plugins: every entry point of group ``tumblenav.estimators`` (name: the estimator's name,
+    value: ``module:factory``, a callable returning the estimator). A plugin that fails to
+    import is left out and its error kept in :data:`PLUGIN_ERRORS` (``tumblenav estimators``
+    shows it); a plugin never replaces a built-in estimator."""
     from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf, ukf_gp  # noqa: F401
+
+    if _PLUGINS or PLUGIN_ERRORS:
+        return
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in _REGISTRY and ep.name not in _PLUGINS:
+            PLUGIN_ERRORS[ep.name] = f"{ep.value}: the name of a built-in estimator"
+            continue
+        try:
+            factory = ep.load()
+        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the tool
+            PLUGIN_ERRORS[ep.name] = f"{ep.value}: {exc.__class__.__name__}: {exc}"
+            continue
+        _REGISTRY[ep.name] = factory
+        _PLUGINS[ep.name] = ep.dist.name if ep.dist is not None else ep.value
+
+
+def plugin_source(name: str) -> str | None:
+    """The distribution that registered estimator ``name`` as a plugin, or None (built in)."""
+    _load_builtin()
+    return _PLUGINS.get(name)
 
 
 def available() -> dict[str, Estimator]:
