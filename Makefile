@@ -19,11 +19,15 @@ demo: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/lint-imports
 
+# lint, the layering contracts of ../shared/design.md (pyproject [tool.importlinter]), the
+# docs build, then the tests (last, so that pytest's summary closes the output)
 test: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/lint-imports
+	$(MAKE) --no-print-directory docs
 	$(PY) -m pytest -q
-	$(MAKE) docs
 
 # the user guide and API reference (mkdocs.yml) into out/site; a warning fails it (not with
 # --quiet: it hides the warnings from the strict check, and the build passes)
