@@ -604,14 +604,6 @@ def _boxplus(x: Array, dx: Array) -> Array:
     return np.concatenate([v, q, x[..., 7:] + dx[..., 6:]], axis=-1)
 
 
-def _boxminus(x: Array, x_hat: Array) -> Array:
-    """``x [-] x_hat`` (inverse of :func:`_boxplus`)."""
-    d = x[..., 7:] - x_hat[..., 7:]
-    return np.concatenate(
-        [x[..., 0:3] - x_hat[..., 0:3], _q_boxminus(x[..., 3:7], x_hat[..., 3:7]), d], axis=-1
-    )
-
-
 def quat_cov_map(q_hat: Array) -> Array:
     """(..., 3, 4) ``d dtheta / d q`` at ``q_hat`` for ``dtheta = 2 vec(q (x) conj(q_hat))``,
     the first-order form of :func:`tumblenav.rotations.boxminus` (its null space is the
@@ -649,12 +641,10 @@ def _filter(
     geom: KabirGeometry,
     tun: KabirTuning,
     variant: Variant,
-    x_true: Array | None = None,
 ) -> dict[str, Any]:
     """Run B filters at once: z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d).
 
-    Returns x (B, n, nom), P (B, n, d, d) of the filter's own state (omitted when ``x_true``
-    (B, n, nom) is given: then err (B, n, 23) and nees (B, n) instead), nis, nis_dof,
+    Returns x (B, n, nom), P (B, n, d, d) of the filter's own state, nis, nis_dof,
     rejected (B,), diverged_at (B,) epoch or -1, repairs (B,).
     """
     B, n, N, _ = z.shape
@@ -674,11 +664,8 @@ def _filter(
     diag = np.arange(M)
     x = np.array(x0, dtype=float)
     P = np.array(P0, dtype=float)
-    keep = x_true is None
     xs = np.full((B, n, nom), np.nan)
-    Ps = np.full((B, n, d, d), np.nan) if keep else None
-    err = None if keep else np.full((B, n, d if not additive else d - 1), np.nan)
-    nees = None if keep else np.full((B, n), np.nan)
+    Ps = np.full((B, n, d, d), np.nan)
     nis = np.full((B, n), np.nan)
     nis_dof = np.zeros((B, n), dtype=np.int64)
     rejected = np.zeros(B, dtype=np.int64)
@@ -780,14 +767,7 @@ def _filter(
                 if not alive.any():
                     break
             xs[:, k] = np.where(alive[:, None], x, np.nan)
-            if keep:
-                Ps[:, k] = np.where(alive[:, None, None], P, np.nan)
-            else:
-                Pe = additive_to_error_cov(x, P) if additive else P
-                e = _boxminus(x_true[:, k], x)
-                err[:, k] = np.where(alive[:, None], e, np.nan)
-                sol = np.linalg.solve(Pe, e[..., None])[..., 0]
-                nees[:, k] = np.where(alive, np.sum(e * sol, axis=1), np.nan)
+            Ps[:, k] = np.where(alive[:, None, None], P, np.nan)
     nis[~np.isfinite(xs[..., 0])] = np.nan
     out = {
         "x": xs,
@@ -798,10 +778,7 @@ def _filter(
         "repairs": repairs,
         "usable": usable.reshape(B, n, N, 9),
     }
-    if keep:
-        out["P"] = Ps
-    else:
-        out["err"], out["nees"] = err, nees
+    out["P"] = Ps
     return out
 
 
