@@ -89,3 +89,28 @@ def test_same_measurements_other_truth_same_estimates(name):
         np.testing.assert_array_equal(a.x, h.x)
         np.testing.assert_array_equal(a.P, h.P)
         np.testing.assert_array_equal(a.nis, h.nis)
+
+
+@pytest.mark.parametrize("name", sorted(_scenarios()))
+def test_estimate_from_a_measurement_folder_without_truth(name, tmp_path, capsys):
+    """`tumblenav estimate --measurements DIR` for every estimator, from a folder with no
+    truth.nc: estimates.nc and a summary without an error section."""
+    from tumblenav import io
+    from tumblenav.cli import main
+    from tumblenav.scenario import scenario_to_yaml
+
+    sc = _scenarios()[name]
+    path = tmp_path / "sc.yaml"
+    path.write_text(scenario_to_yaml(sc))
+    _, meas = simulate(sc, run_seed(3, 0))
+    folder = tmp_path / "data"
+    io.write_netcdf(meas.to_dataset(sc.name), folder / "measurements.nc")
+    out = tmp_path / "est"
+    args = ["estimate", str(path), "-e", name, "--measurements", str(folder), "-o", str(out)]
+    with pytest.raises(SystemExit) as ei:
+        main(args)
+    err = capsys.readouterr().err
+    assert ei.value.code == 0, err
+    summary = io.read_json(out / "summary.json")
+    assert "rmse" not in summary and "nees" not in summary
+    assert (out / "estimates.nc").exists() and not list(out.glob("errors.png"))

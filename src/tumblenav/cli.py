@@ -242,11 +242,17 @@ def reproduce(
 def estimators() -> None:
     """List the estimators and what each needs."""
     from tumblenav.estimators.base import PLUGIN_ERRORS, available, plugin_source
+    from tumblenav.frontends import registry
 
-    table = Table("name", "needs", "description", "from")
+    table = Table("name", "runs on", "needs", "description", "from", title="estimators")
     for name, est in available().items():
-        table.add_row(name, est.needs, est.description, plugin_source(name) or "built in")
+        consumes = ", ".join(getattr(est, "consumes", ()) or ("?",))
+        table.add_row(name, consumes, est.needs, est.description, plugin_source(name) or "built in")
     out.print(table)
+    fes = Table("name", "consumes", "produces", "description", title="front ends")
+    for fe in registry.available().values():
+        fes.add_row(fe.name, fe.consumes, fe.produces, fe.description)
+    out.print(fes)
     for name, why in PLUGIN_ERRORS.items():
         err.print(f"[bold yellow]plugin {escape(name)} not loaded:[/] {escape(why)}")
 

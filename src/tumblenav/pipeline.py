@@ -18,15 +18,10 @@ from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation import metrics
+from tumblenav.measurements import DepthMeasurements, StereoMeasurements
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
-from tumblenav.simulation import (
-    DepthMeasurements,
-    StereoMeasurements,
-    Truth,
-    run_streams,
-    simulate,
-)
+from tumblenav.simulation import Truth, run_streams, simulate
 
 
 def run_simulate(

@@ -1,8 +1,9 @@
 """Truth and sensor simulation for a scenario: the first two stages of the pipeline.
 
-``simulate(scenario, seed)`` returns a :class:`Truth` and, for a stereo sensor, a
-:class:`StereoMeasurements`; both convert to self-describing xarray datasets (``truth.nc``,
-``measurements.nc``; see docs/formats.md).
+``simulate(scenario, seed)`` returns a :class:`Truth` and the sensor's measurements
+(:class:`tumblenav.measurements.StereoMeasurements` or ``DepthMeasurements``, re-exported
+here); both convert to self-describing xarray datasets (``truth.nc``, ``measurements.nc``;
+see docs/formats.md).
 
 Random streams: one ``SeedSequence`` per run is split into independent children for the
 feature geometry, the truth and the sensor noise, so that changing the noise level of a
@@ -23,6 +24,8 @@ from tumblenav import dynamics, sensors
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.frames import lvlh_axes
+from tumblenav.measurements import DepthMeasurements, StereoMeasurements
+from tumblenav.measurements._attrs import _a
 from tumblenav.scenario import RandomFeatures, Scenario, StereoSensorConfig
 
 Array = NDArray[np.float64]
@@ -172,127 +175,6 @@ class Truth:
         return cls(t=np.asarray(ds["time"].values, dtype=float), **g)
 
 
-@dataclass(frozen=True)
-class StereoMeasurements:
-    """Raw stereo pixel measurements (what the cameras give) plus the chaser's own knowledge.
-
-    uv : (n, 2, N, 2) px -- [time, camera (0 left, 1 right), feature, (u, v)], NaN if unseen.
-    observed : (n, 2, N) bool -- explicit visibility mask.
-    q_CL : (n, 4) -- rig attitude (known to the chaser); q_LI : (n, 4) -- LVLH attitude.
-    """
-
-    t: Array
-    uv: Array
-    observed: NDArray[np.bool_]
-    q_CL: Array
-    q_LI: Array
-    rig: sensors.StereoRig
-    noise_px: float
-
-    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
-        from tumblenav.io import with_coordinates
-
-        rig = self.rig
-        cams = (rig.left, rig.right)
-        ds = xr.Dataset(
-            {
-                "uv": (
-                    ("time", "camera", "feature", "pixel"),
-                    self.uv,
-                    _a(
-                        "px",
-                        "measured image coordinates of the features (pinhole model plus "
-                        "Gaussian noise); NaN where unobserved",
-                    ),
-                ),
-                "observed": (
-                    ("time", "camera", "feature"),
-                    self.observed.astype(np.int8),
-                    _a(
-                        "1",
-                        "1 if that camera measured the feature (in front of it, inside the "
-                        "image, not occluded), else 0",
-                    ),
-                ),
-                "q_CL": (
-                    ("time", "quat"),
-                    self.q_CL,
-                    _a("1", "rig attitude: maps L into C (known to the chaser)"),
-                ),
-                "q_LI": (
-                    ("time", "quat"),
-                    self.q_LI,
-                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
-                ),
-                "R_CkC": (
-                    ("camera", "row", "col"),
-                    np.stack([c.R_CkC for c in cams]),
-                    _a("1", "rotation from the rig frame C into the camera frame"),
-                ),
-                "p_CkinC": (
-                    ("camera", "xyz"),
-                    np.stack([c.p_CkinC for c in cams]),
-                    _a("m", "camera centre in the rig frame C"),
-                ),
-                "focal_px": (
-                    ("camera",),
-                    np.array([c.focal_px for c in cams]),
-                    _a("px", "focal length"),
-                ),
-                "principal_point_px": (
-                    ("camera", "pixel"),
-                    np.array([c.principal_point_px for c in cams], dtype=float),
-                    _a("px", "principal point (cu, cv)"),
-                ),
-                "resolution_px": (
-                    ("camera", "pixel"),
-                    np.array([c.resolution_px for c in cams], dtype=float),
-                    _a("px", "image size (W, H)"),
-                ),
-            },
-            attrs={
-                "title": "tumblenav stereo measurements",
-                "scenario": scenario_name,
-                "rig": rig.kind,
-                "baseline_m": rig.baseline_m,
-                "noise_px": self.noise_px,
-                "camera_model": "pinhole; camera axes x right, y optical axis, z = x cross y; "
-                "u = cu + f x/y, v = cv + f z/y",
-            },
-        )
-        return with_coordinates(ds, time=self.t, feature=np.arange(self.uv.shape[2]))
-
-    @classmethod
-    def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
-        cams = []
-        for k in range(2):
-            cams.append(
-                sensors.Camera(
-                    focal_px=float(ds["focal_px"].values[k]),
-                    principal_point_px=tuple(float(x) for x in ds["principal_point_px"].values[k]),
-                    resolution_px=tuple(int(x) for x in ds["resolution_px"].values[k]),
-                    R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
-                    p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
-                )
-            )
-        rig = sensors.StereoRig(
-            left=cams[0], right=cams[1], kind=str(ds.attrs.get("rig", "parallel"))
-        )
-        return cls(
-            t=np.asarray(ds["time"].values, dtype=float),
-            uv=np.asarray(ds["uv"].values, dtype=float),
-            observed=np.asarray(ds["observed"].values).astype(bool),
-            q_CL=np.asarray(ds["q_CL"].values, dtype=float),
-            q_LI=np.asarray(ds["q_LI"].values, dtype=float),
-            rig=rig,
-            noise_px=float(ds.attrs.get("noise_px", np.nan)),
-        )
-
-
-def _a(units: str, description: str) -> dict[str, str]:
-    return {"units": units, "description": description}
-
-
 # --- the pieces ------------------------------------------------------------------------------
 
 
@@ -439,78 +321,6 @@ def simulate_stereo(
         rig=rig,
         noise_px=noise_px,
     )
-
-
-@dataclass(frozen=True)
-class DepthMeasurements:
-    """Ray-cast point clouds in the sensor frame S (= the rig frame C of the chaser's pointing).
-
-    points : (n, R, 3) m -- [time, ray, xyz], NaN where a ray returned nothing.
-    observed : (n, R) bool.  q_CL, q_LI : (n, 4) -- sensor and LVLH attitudes (known).
-    """
-
-    t: Array
-    points: Array
-    observed: NDArray[np.bool_]
-    q_CL: Array
-    q_LI: Array
-    fov_rad: float
-    range_noise_m: float
-
-    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
-        from tumblenav.io import with_coordinates
-
-        ds = xr.Dataset(
-            {
-                "points": (
-                    ("time", "ray", "xyz"),
-                    self.points,
-                    _a("m", "the returns of each scan in the sensor frame S; NaN where none"),
-                ),
-                "observed": (
-                    ("time", "ray"),
-                    self.observed.astype(np.int8),
-                    _a("1", "1 for a return, 0 for padding"),
-                ),
-                "q_CL": (
-                    ("time", "quat"),
-                    self.q_CL,
-                    _a("1", "sensor attitude: maps L into S (known to the chaser)"),
-                ),
-                "q_LI": (
-                    ("time", "quat"),
-                    self.q_LI,
-                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
-                ),
-            },
-            attrs={
-                "title": "tumblenav depth measurements",
-                "scenario": scenario_name,
-                "sensor": "flash LIDAR / ToF, boresight +y of S",
-                "fov_rad": self.fov_rad,
-                "range_noise_m": self.range_noise_m,
-            },
-        )
-        return with_coordinates(ds, time=self.t, ray=np.arange(self.points.shape[1]))
-
-    @classmethod
-    def from_dataset(cls, ds: xr.Dataset) -> DepthMeasurements:
-        """The clouds of a depth ``measurements.nc`` dataset; InputError if a variable or a
-        global attribute is missing."""
-        variables = ("points", "observed", "q_CL", "q_LI")
-        missing = [k for k in variables if k not in ds.variables]
-        missing += [f"attribute {k}" for k in ("fov_rad", "range_noise_m") if k not in ds.attrs]
-        if missing:
-            raise InputError(f"depth measurements: missing {', '.join(missing)}")
-        return cls(
-            t=np.asarray(ds["time"].values, dtype=float),
-            points=np.asarray(ds["points"].values, dtype=float),
-            observed=np.asarray(ds["observed"].values).astype(bool),
-            q_CL=np.asarray(ds["q_CL"].values, dtype=float),
-            q_LI=np.asarray(ds["q_LI"].values, dtype=float),
-            fov_rad=float(ds.attrs["fov_rad"]),
-            range_noise_m=float(ds.attrs["range_noise_m"]),
-        )
 
 
 def target_model(scenario: Scenario):

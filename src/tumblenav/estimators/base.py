@@ -161,7 +161,8 @@ class EstimateHistory:
 @runtime_checkable
 class Estimator(Protocol):
     name: str
-    needs: str  # what measurements it consumes, for `tumblenav estimators`
+    consumes: tuple[str, ...]  # measurement types it runs on (tumblenav.measurements.KINDS)
+    needs: str  # what it needs beyond that, in words, for `tumblenav estimators`
     description: str
 
     def check(self, scenario: Any) -> None:
@@ -269,7 +270,15 @@ def get_for(name: str, scenario: Any) -> Estimator:
     """The estimator ``name``, checked against ``scenario`` (:meth:`Estimator.check`): an
     :class:`InputError` before any work if it cannot run there."""
     from tumblenav.estimators.context import context_from_scenario
+    from tumblenav.measurements import KINDS
 
     est = get(name)
+    given = KINDS.get(scenario.sensor.kind, scenario.sensor.kind)
+    consumes = tuple(getattr(est, "consumes", ()) or ())
+    if consumes and given not in consumes:
+        raise InputError(
+            f"{name} runs on {' or '.join(consumes)}; scenario {scenario.name}'s "
+            f"{scenario.sensor.kind} sensor gives {given}"
+        )
     est.check(context_from_scenario(scenario))
     return est

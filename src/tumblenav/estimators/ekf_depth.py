@@ -34,6 +34,7 @@ from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, regis
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends.depth_pose import consistent_start, model_symmetries, pose_fixes
+from tumblenav.measurements import DEPTH_CLOUDS
 
 Array = NDArray[np.float64]
 
@@ -285,6 +286,7 @@ def measurement(x: Array, R_LI: Array) -> tuple[Array, Array]:
 
 class DepthEKF:
     name = "ekf-depth"
+    consumes = (DEPTH_CLOUDS,)  # the measurement types it runs on
     needs = "depth point clouds (depth sensor) and a target model with known rectangles"
     description = "Yu 2019: RANSAC rectangles -> coarse pose -> EKF with mass-centre offset"
 

@@ -48,6 +48,7 @@ from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import stereo_points
 from tumblenav.frontends.inertia import branch_statistics, inertia_ratios
+from tumblenav.measurements import STEREO_TRACKS
 
 Array = NDArray[np.float64]
 
@@ -1555,6 +1556,7 @@ CONSTRAIN_EVERY = 10  # epochs between projections onto the inertia constraint
 class HuEKF:
     """Shared implementation of ekf-dpacf and ekf-baseline."""
 
+    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = "stereo feature tracks (stereo sensor)"
     compiled = True  # numba kernels: campaigns warm them up before forking their workers
 

@@ -65,7 +65,7 @@ deg for ``ukf-mult``).  From 10 % of those initial errors both are consistent (N
 Entry points: :func:`run_ukf` runs either filter on prepared measurements ``z`` (n, N, 9) and
 variances (n, N, 9) (NaN = not available), so that pseudo-measurements (the GP predictions of
 ``ukf-gp``) with their own variances can be fed; :func:`stereo_measurements` builds ``z`` and
-``R`` from a :class:`~tumblenav.simulation.StereoMeasurements`; :func:`paper_tuning` gives the
+``R`` from a :class:`~tumblenav.measurements.StereoMeasurements`; :func:`paper_tuning` gives the
 paper's per-frequency Q and flow noise.
 """
 
@@ -85,6 +85,7 @@ from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, regis
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import projections as proj
+from tumblenav.measurements import STEREO_TRACKS
 
 Array = NDArray[np.float64]
 Variant = Literal["additive", "mult"]
@@ -920,9 +921,10 @@ def _skipped(usable: NDArray[np.bool_], res: dict, b: int) -> dict[str, int]:
 class KabirUKF:
     """``ukf`` (Kabir 2025's additive UKF) and ``ukf-mult`` (USQUE-style variant)."""
 
+    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = (
-        "stereo feature tracks from a parallel rig, the target's mass-centre position and an "
-        "inertially fixed chaser (Kabir 2025 Sec. 2.1)"
+        "stereo feature tracks from a parallel rig, an inertially fixed chaser and the target's "
+        "mass-centre position, known (Kabir 2025 Sec. 2.1): estimator.tuning.mass_centre_L_m"
     )
 
     def __init__(self, variant: Variant) -> None:

@@ -39,6 +39,7 @@ from tumblenav.estimators import ukf
 from tumblenav.estimators.base import EstimateHistory, register
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import projections as proj
+from tumblenav.measurements import STEREO_TRACKS
 
 Array = NDArray[np.float64]
 
@@ -158,6 +159,7 @@ def _model_summary(m: gpm.GPFit | str, T_train: float) -> dict[str, Any]:
 
 class KabirUKFGP:
     name = "ukf-gp"
+    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = (
         "as ukf; the GP is trained on each feature's observed epochs and replaces its "
         "measurements wherever it is not observed"

@@ -44,8 +44,8 @@ from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 
 if TYPE_CHECKING:
+    from tumblenav.measurements import StereoMeasurements
     from tumblenav.sensors.stereo import StereoRig
-    from tumblenav.simulation import StereoMeasurements
 
 Array = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
 """Stereo feature points -> measurements for the Hu 2024 filter, batched over Monte Carlo runs.
 
-From raw pixel tracks (:class:`tumblenav.simulation.StereoMeasurements`) of B runs that share a
+From raw pixel tracks (:class:`tumblenav.measurements.StereoMeasurements`) of B runs that share a
 rig and a time grid, this front end computes, for every run and epoch:
 
 1. triangulated feature points in the rig frame C and in L, with their first-order

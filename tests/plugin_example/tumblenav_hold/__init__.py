@@ -30,6 +30,7 @@ class Tuning(BaseModel):
 
 class HoldCentroid:
     name = "hold-centroid"
+    consumes = ("stereo-tracks",)  # measurement types it runs on (tumblenav.measurements)
     needs = "stereo feature tracks (stereo sensor), at least three features at one epoch"
     description = "position held at the first triangulated centroid (an example plugin)"
 

@@ -1,0 +1,132 @@
+"""Stereo feature tracks: what a calibrated stereo rig gives (pixel pairs with IDs and a
+visibility mask), the input of the stereo front ends and estimators; ``measurements.nc``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+from numpy.typing import NDArray
+
+from tumblenav import sensors
+from tumblenav.measurements._attrs import _a
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class StereoMeasurements:
+    """Raw stereo pixel measurements (what the cameras give) plus the chaser's own knowledge.
+
+    uv : (n, 2, N, 2) px -- [time, camera (0 left, 1 right), feature, (u, v)], NaN if unseen.
+    observed : (n, 2, N) bool -- explicit visibility mask.
+    q_CL : (n, 4) -- rig attitude (known to the chaser); q_LI : (n, 4) -- LVLH attitude.
+    """
+
+    t: Array
+    uv: Array
+    observed: NDArray[np.bool_]
+    q_CL: Array
+    q_LI: Array
+    rig: sensors.StereoRig
+    noise_px: float
+
+    def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
+        from tumblenav.io import with_coordinates
+
+        rig = self.rig
+        cams = (rig.left, rig.right)
+        ds = xr.Dataset(
+            {
+                "uv": (
+                    ("time", "camera", "feature", "pixel"),
+                    self.uv,
+                    _a(
+                        "px",
+                        "measured image coordinates of the features (pinhole model plus "
+                        "Gaussian noise); NaN where unobserved",
+                    ),
+                ),
+                "observed": (
+                    ("time", "camera", "feature"),
+                    self.observed.astype(np.int8),
+                    _a(
+                        "1",
+                        "1 if that camera measured the feature (in front of it, inside the "
+                        "image, not occluded), else 0",
+                    ),
+                ),
+                "q_CL": (
+                    ("time", "quat"),
+                    self.q_CL,
+                    _a("1", "rig attitude: maps L into C (known to the chaser)"),
+                ),
+                "q_LI": (
+                    ("time", "quat"),
+                    self.q_LI,
+                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
+                ),
+                "R_CkC": (
+                    ("camera", "row", "col"),
+                    np.stack([c.R_CkC for c in cams]),
+                    _a("1", "rotation from the rig frame C into the camera frame"),
+                ),
+                "p_CkinC": (
+                    ("camera", "xyz"),
+                    np.stack([c.p_CkinC for c in cams]),
+                    _a("m", "camera centre in the rig frame C"),
+                ),
+                "focal_px": (
+                    ("camera",),
+                    np.array([c.focal_px for c in cams]),
+                    _a("px", "focal length"),
+                ),
+                "principal_point_px": (
+                    ("camera", "pixel"),
+                    np.array([c.principal_point_px for c in cams], dtype=float),
+                    _a("px", "principal point (cu, cv)"),
+                ),
+                "resolution_px": (
+                    ("camera", "pixel"),
+                    np.array([c.resolution_px for c in cams], dtype=float),
+                    _a("px", "image size (W, H)"),
+                ),
+            },
+            attrs={
+                "title": "tumblenav stereo measurements",
+                "scenario": scenario_name,
+                "rig": rig.kind,
+                "baseline_m": rig.baseline_m,
+                "noise_px": self.noise_px,
+                "camera_model": "pinhole; camera axes x right, y optical axis, z = x cross y; "
+                "u = cu + f x/y, v = cv + f z/y",
+            },
+        )
+        return with_coordinates(ds, time=self.t, feature=np.arange(self.uv.shape[2]))
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
+        cams = []
+        for k in range(2):
+            cams.append(
+                sensors.Camera(
+                    focal_px=float(ds["focal_px"].values[k]),
+                    principal_point_px=tuple(float(x) for x in ds["principal_point_px"].values[k]),
+                    resolution_px=tuple(int(x) for x in ds["resolution_px"].values[k]),
+                    R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
+                    p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
+                )
+            )
+        rig = sensors.StereoRig(
+            left=cams[0], right=cams[1], kind=str(ds.attrs.get("rig", "parallel"))
+        )
+        return cls(
+            t=np.asarray(ds["time"].values, dtype=float),
+            uv=np.asarray(ds["uv"].values, dtype=float),
+            observed=np.asarray(ds["observed"].values).astype(bool),
+            q_CL=np.asarray(ds["q_CL"].values, dtype=float),
+            q_LI=np.asarray(ds["q_LI"].values, dtype=float),
+            rig=rig,
+            noise_px=float(ds.attrs.get("noise_px", np.nan)),
+        )
