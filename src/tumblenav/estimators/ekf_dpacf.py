@@ -34,11 +34,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy import stats
 
 from tumblenav import rotations as rot
@@ -67,9 +67,14 @@ def layout(n_features: int) -> StateLayout:
 
 
 class HuTuning(BaseModel):
-    """``estimator.tuning`` keys of ekf-dpacf / ekf-baseline (all optional)."""
+    """``estimator.tuning`` keys of ekf-dpacf (all optional), with its defaults;
+    :class:`BaselineTuning` holds ekf-baseline's. Two defaults follow another key, and the
+    validated model shows the value used: ``dpacf_frame_error`` is 'white' with
+    ``dpacf_measurement: frame``, and ``attitude_update`` is on unless the frame error is
+    'consider'."""
 
     model_config = ConfigDict(extra="forbid")
+    uses_dpacf: ClassVar[bool] = True
     sigma_t2_m2_s4: float | None = Field(None, ge=0, description="default: scenario process_noise")
     sigma_r2_rad2_s4: float | None = Field(
         None, ge=0, description="default: scenario process_noise"
@@ -117,45 +122,43 @@ class HuTuning(BaseModel):
         "DPACF rotation R_TG against the filter's features (beyond the paper)",
     )
     frame_meas_every: int = Field(50, ge=1, description="epochs between frame measurements")
-    first_estimates_jacobian: bool | None = Field(
-        None,
-        description="linearise dy_i/dtheta at each feature's first estimate (FEJ); default: "
-        "on for ekf-dpacf, off for ekf-baseline (which starts far from any principal frame, "
-        "where frozen first estimates make it diverge)",
+    first_estimates_jacobian: bool = Field(
+        True,
+        description="linearise dy_i/dtheta at each feature's first estimate (FEJ); off for "
+        "ekf-baseline (which starts far from any principal frame, where frozen first "
+        "estimates make it diverge)",
     )
     flip_epochs: int = Field(
         50, ge=1, description="DPACF measurements a half turn away before the filter follows"
     )
-    constraint_curvature: bool | None = Field(
-        None,
+    constraint_curvature: bool = Field(
+        True,
         description="keep the variance that the inertia constraint's curvature leaves along "
-        "its gradient (beyond the paper; see constrain_inertia); default: on for ekf-dpacf, "
-        "off for ekf-baseline (whose ratios start at a sphere with 1-sigma 0.5, where the "
+        "its gradient (beyond the paper; see constrain_inertia); off for ekf-baseline (whose ratios start at a sphere with 1-sigma 0.5, where the "
         "second-order term is meaningless: 216 instead of 183 of 500 runs at 1e-6 rad "
         "stopped as diverged)",
     )
-    mass_centre_init: Literal["joint", "rotation", "centroid"] | None = Field(
-        None,
+    mass_centre_init: Literal["joint", "rotation", "centroid"] = Field(
+        "joint",
         description="'centroid': the filter starts with the mass centre at the feature "
         "centroid (1-sigma p0_mass_centre_m); 'rotation': from a batch least squares over "
         "the rotation seen before the start, with the features fixed at their template "
         "(beyond the paper, mass_centre_from_rotation); 'joint': the same batch with the "
         "features about the mass centre as unknowns (features_from_rotation), which also "
         "gives the features refined over those views; both fall back to the centroid when "
-        "the batch cannot tell the mass centre. Default: 'joint' for ekf-dpacf, 'rotation' "
-        "for ekf-baseline (with 'joint' its tighter start on features expressed in its free, "
+        "the batch cannot tell the mass centre. 'rotation' for ekf-baseline (with 'joint' its tighter start on features expressed in its free, "
         "wrong principal frame stopped 71 instead of 14 of 500 runs at 2e-5 rad as diverged)",
     )
-    iterate_sigma_rad: float | None = Field(
-        None,
-        gt=0,
+    iterate_sigma_rad: float = Field(
+        0.1,
+        ge=0,
         description="where the prior attitude's 1-sigma (rms over the axes) exceeds this, "
         "the update is iterated (relinearised at its posterior, from the same prior, "
         "iterate_max more times; beyond the paper): after a long occlusion the attitude "
         "is tens of degrees uncertain and the update linearised at the prior put the "
-        "position and features off by several sigma. Default: 0.1 for ekf-dpacf, never "
-        "for ekf-baseline (the paper's comparison filter, whose free frame starts tens of "
-        "degrees uncertain). Not with gate_probability",
+        "position and features off by several sigma. 0: never, ekf-baseline's default "
+        "(the paper's comparison filter, whose free frame starts tens of degrees "
+        "uncertain). Not with gate_probability",
     )
     iterate_max: int = Field(2, ge=0, description="the iterated update's extra iterations")
     template_refine_s: float | list[float] = Field(
@@ -198,31 +201,31 @@ class HuTuning(BaseModel):
         "common shift 1.85 in a slow tumble, 0.07 rad/s, benchmarks/hu2024_mass_centre.py "
         "--scenario docs/results/scenarios/generalisation/g_slowrecede.yaml)",
     )
-    dpacf_frame_error: Literal["consider", "white"] | None = Field(
-        None,
+    dpacf_frame_error: Literal["consider", "white"] = Field(
+        "consider",
         description="how the error of the DPACF frame itself (the least-squares principal axes, "
         "cov_frame, slowly varying) enters: 'white': as part of the eq. 31 attitude noise at "
         "every epoch (Hu 2024); 'consider': the filter works in the front end's frame, "
         "re-expresses its state whenever that frame is re-solved, measures only the white "
         "G-attitude part, and adds the frame's covariance to the covariance it reports "
-        "(beyond the paper, see frame_consider_cov); default: 'consider' for ekf-dpacf with "
-        "dpacf_measurement 'attitude', else 'white'",
+        "(beyond the paper, see frame_consider_cov); 'white' by default with "
+        "dpacf_measurement 'frame', and for ekf-baseline",
     )
-    attitude_update: bool | None = Field(
-        None,
+    attitude_update: bool = Field(
+        False,
         description="update with the DPACF attitude of Hu 2024 eq. 31. With "
         "dpacf_frame_error 'consider' that measurement is only the G attitude, a fit to the "
         "same feature points as the feature measurements (eq. 32-35): fusing both counts "
         "those points twice (beyond the paper). Default: off with 'consider' (the DPACF "
         "frame enters as the frame the state is expressed in, its half-turn votes still "
-        "use the attitude), on with 'white'",
+        "use the attitude), on with 'white' (the default follows dpacf_frame_error)",
     )
-    refine_start: bool | None = Field(
-        None,
+    refine_start: bool = Field(
+        True,
         description="start from a Gauss-Newton fit of the attitude and position to the start "
         "epoch's feature points with their full covariances (refine_start_pose; beyond the "
-        "paper), whose covariance is the initial one, and use that epoch only there; default: "
-        "on for ekf-dpacf, off for ekf-baseline (which has no principal frame to start in)",
+        "paper), whose covariance is the initial one, and use that epoch only there; off for "
+        "ekf-baseline (which has no principal frame to start in)",
     )
     sigma_f2_m2_s: float = Field(
         0.0,
@@ -252,8 +255,40 @@ class HuTuning(BaseModel):
     )
 
 
-def parse_tuning(raw: dict[str, Any]) -> HuTuning:
-    return base_parse_tuning(raw, HuTuning)
+    @model_validator(mode="after")
+    def _dependent_defaults(self) -> HuTuning:
+        """The two defaults that follow another key (see the class docstring), and the one
+        combination that cannot work."""
+        given = self.model_fields_set
+        if "dpacf_frame_error" not in given and self.dpacf_measurement == "frame":
+            self.dpacf_frame_error = "white"
+        consider = self.uses_dpacf and self.dpacf_frame_error == "consider"
+        if consider and self.dpacf_measurement == "frame":
+            raise ValueError(
+                "dpacf_frame_error 'consider' works with dpacf_measurement 'attitude' only"
+            )
+        if "attitude_update" not in given:
+            self.attitude_update = not consider
+        return self
+
+
+class BaselineTuning(HuTuning):
+    """``estimator.tuning`` keys of ekf-baseline: :class:`HuTuning`'s, with the defaults of
+    the paper's comparison filter (Aghili & Parsa 2009: no DPACF, a free principal frame)."""
+
+    uses_dpacf: ClassVar[bool] = False
+    first_estimates_jacobian: bool = False
+    constraint_curvature: bool = False
+    mass_centre_init: Literal["joint", "rotation", "centroid"] = "rotation"
+    iterate_sigma_rad: float = Field(0.0, ge=0)
+    dpacf_frame_error: Literal["consider", "white"] = "white"
+    attitude_update: bool = True
+    refine_start: bool = False
+
+
+def parse_tuning(raw: dict[str, Any], use_dpacf: bool = True) -> HuTuning:
+    """ekf-dpacf's (``use_dpacf``) or ekf-baseline's settings from ``estimator.tuning``."""
+    return base_parse_tuning(raw, HuTuning if use_dpacf else BaselineTuning)
 
 
 # --- model pieces (batched over a leading run axis) --------------------------------------
@@ -959,28 +994,11 @@ def run_filter(
     ``None``: the module's ``ENGINE`` (benchmarks set it to time the numpy loop)."""
     scenario = context_from_scenario(scenario)  # never the target's truth
     engine = engine or ENGINE
-    tun = parse_tuning(scenario.estimator.tuning)
-    if tun.first_estimates_jacobian is None:
-        tun = tun.model_copy(update={"first_estimates_jacobian": use_dpacf})
-    if tun.constraint_curvature is None:
-        tun = tun.model_copy(update={"constraint_curvature": use_dpacf})
-    if tun.mass_centre_init is None:
-        tun = tun.model_copy(update={"mass_centre_init": "joint" if use_dpacf else "rotation"})
-    if tun.dpacf_frame_error is None:
-        consider = use_dpacf and tun.dpacf_measurement == "attitude"
-        tun = tun.model_copy(update={"dpacf_frame_error": "consider" if consider else "white"})
-    if tun.dpacf_frame_error == "consider" and tun.dpacf_measurement == "frame":
-        raise InputError(
-            "estimator.tuning: dpacf_frame_error 'consider' works with dpacf_measurement "
-            "'attitude' only"
-        )
+    tun = parse_tuning(scenario.estimator.tuning, use_dpacf)
     consider = use_dpacf and tun.dpacf_frame_error == "consider"
-    if tun.attitude_update is None:
-        tun = tun.model_copy(update={"attitude_update": not consider})
-    refine = use_dpacf if tun.refine_start is None else tun.refine_start
+    refine = tun.refine_start
     # iterated update: prior attitude variance (trace) above this (0: never)
-    it_sigma = tun.iterate_sigma_rad if tun.iterate_sigma_rad is not None else 0.1
-    iter_var = 3.0 * it_sigma**2 if use_dpacf or tun.iterate_sigma_rad is not None else 0.0
+    iter_var = 3.0 * tun.iterate_sigma_rad**2
     s_t2 = (
         tun.sigma_t2_m2_s4
         if tun.sigma_t2_m2_s4 is not None
@@ -1576,7 +1594,7 @@ class HuEKF:
                 f"{self.name} needs a stereo sensor; scenario {scenario.name} has "
                 f"a {scenario.sensor.kind} sensor"
             )
-        parse_tuning(scenario.estimator.tuning)
+        parse_tuning(scenario.estimator.tuning, self.use_dpacf)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
         scenario = context_from_scenario(scenario)  # never the target's truth
