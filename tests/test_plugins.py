@@ -35,7 +35,7 @@ def plugin_path(tmp_path_factory) -> Path:
 
 
 def _cli(args: list[str], plugin_path: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(plugin_path)}
+    env = {**os.environ, "PYTHONPATH": str(plugin_path), "COLUMNS": "250"}  # tables unwrapped
     return subprocess.run(
         [sys.executable, "-m", "tumblenav.cli", *args],
         capture_output=True, text=True, env=env, timeout=300,

@@ -34,16 +34,16 @@ class HoldCentroid:
     needs = "stereo feature tracks (stereo sensor), at least three features at one epoch"
     description = "position held at the first triangulated centroid (an example plugin)"
 
-    def check(self, scenario: Any) -> None:
-        if scenario.sensor.kind != "stereo":
+    def check(self, context: Any) -> None:
+        if context.sensor.kind != "stereo":
             raise InputError(
-                f"{self.name} needs a stereo sensor; scenario {scenario.name} has "
-                f"a {scenario.sensor.kind} sensor"
+                f"{self.name} needs a stereo sensor; scenario {context.name} has "
+                f"a {context.sensor.kind} sensor"
             )
-        parse_tuning(scenario.estimator.tuning, Tuning)
+        parse_tuning(context.estimator.tuning, Tuning)
 
-    def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
-        tun = parse_tuning(scenario.estimator.tuning, Tuning)
+    def run(self, context: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
+        tun = parse_tuning(context.estimator.tuning, Tuning)
         t = measurements.t
         n = len(t)
         # front end: features triangulated in the rig frame C, (runs=1, n, N, 3) m
