@@ -20,12 +20,14 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy src/tumblenav
 
 # lint, the layering contracts of ../shared/design.md (pyproject [tool.importlinter]), the
 # docs build, then the tests (last, so that pytest's summary closes the output)
 test: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy src/tumblenav
 	$(MAKE) --no-print-directory docs
 	$(PY) -m pytest -q
 

@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import click
 import typer
@@ -23,8 +23,16 @@ from typer.core import TyperCommand, TyperGroup
 
 from tumblenav.errors import InputError, Interrupted
 
+if TYPE_CHECKING:
+    # recent typer vendors click as typer._click: its commands, contexts and parsers are
+    # those classes, not the click package's (annotations only, nothing imported at run time)
+    from typer._click import Command as TyperClickCommand
+    from typer._click import Context as TyperClickContext
 
-def _refuse_repeated_options(cmd: click.Command, ctx: click.Context, args: list[str]) -> None:
+
+def _refuse_repeated_options(
+    cmd: TyperClickCommand, ctx: TyperClickContext, args: list[str]
+) -> None:
     """Click silently keeps the last of a repeated option (``-e a -e b`` runs only b):
     refuse it as a usage error (exit 2) instead."""
     try:
@@ -43,19 +51,22 @@ def _refuse_repeated_options(cmd: click.Command, ctx: click.Context, args: list[
                 )
                 raise click.UsageError(
                     f"option {'/'.join(param.opts)} given more than once; give it once{why}",
-                    ctx=ctx,
+                    # click's UsageError is annotated with click's Context, but this is typer's
+                    # vendored one; show() only reads its command, command_path, color and
+                    # usage, which both have
+                    ctx=ctx,  # type: ignore[arg-type]
                 )
             seen.add(param.name or "")
 
 
 class StrictCommand(TyperCommand):
-    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+    def parse_args(self, ctx: TyperClickContext, args: list[str]) -> list[str]:
         _refuse_repeated_options(self, ctx, args)
         return super().parse_args(ctx, args)
 
 
 class StrictGroup(TyperGroup):
-    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+    def parse_args(self, ctx: TyperClickContext, args: list[str]) -> list[str]:
         if args and args[0].startswith("-"):
             _refuse_repeated_options(self, ctx, [a for a in args if a.startswith("-")])
         return super().parse_args(ctx, args)
@@ -311,11 +322,10 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - the one place that turns crashes into a line
         # click (vendored by recent typer) usage errors: show them as click does, exit 2
-        if callable(getattr(exc, "show", None)) and isinstance(
-            getattr(exc, "exit_code", None), int
-        ):
-            exc.show()
-            sys.exit(exc.exit_code)
+        show, exit_code = getattr(exc, "show", None), getattr(exc, "exit_code", None)
+        if callable(show) and isinstance(exit_code, int):
+            show()
+            sys.exit(exit_code)
         if os.environ.get("TUMBLENAV_DEBUG"):
             raise
         err.print(

@@ -22,8 +22,9 @@ import argparse
 import re
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -51,7 +52,7 @@ ATTRIBUTES: dict[str, str] = {
     "skipped": "measurements the estimator skipped and why, `reason=count; ...`",
 }
 # Attributes whose value is the same in every file of its kind: shown in the tables.
-_FIXED_VALUES = ("title", "tumblenav_format", "quaternion_convention", "frames")
+_FIXED_VALUES: tuple[str, ...] = ("title", "tumblenav_format", "quaternion_convention", "frames")
 _FIXED_VALUES += ("camera_model", "sensor")
 
 # Sizes of the dimensions whose size depends on the run.
@@ -136,7 +137,7 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     return "\n".join(lines)
 
 
-def _code(names: Sequence[object]) -> str:
+def _code(names: Iterable[object]) -> str:
     return ", ".join(f"`{n}`" for n in names)
 
 
@@ -162,7 +163,9 @@ def _coordinates_rows(files: Sequence[xr.Dataset]) -> list[list[str]]:
                 size = f"on `{dim}`"
             row = [f"`{name}`", size, _coordinate_values(coord), coord.attrs["description"]]
             if rows.setdefault(str(name), row) != row:
-                raise ValueError(f"coordinate {name} differs between files: {rows[name]}, {row}")
+                raise ValueError(
+                    f"coordinate {name} differs between files: {rows[str(name)]}, {row}"
+                )
     return list(rows.values())
 
 
@@ -178,7 +181,7 @@ def _variables_rows(files: Sequence[xr.Dataset]) -> list[list[str]]:
         for name, var in ds.data_vars.items():
             row = _variable_row(var)
             if rows.setdefault(str(name), row) != row:
-                raise ValueError(f"variable {name} differs between files: {rows[name]}, {row}")
+                raise ValueError(f"variable {name} differs between files: {rows[str(name)]}, {row}")
     rank = {v: i for i, v in enumerate(v for b in io.BLOCKS for v in (b, f"sigma_{b}"))}
     return [row for _, row in sorted(rows.items(), key=lambda kv: rank.get(kv[0], len(rank)))]
 
@@ -225,6 +228,47 @@ def estimators_table() -> str:
     return _table(("estimator", "blocks (error-state size)", "m", "inertia_param"), rows)
 
 
+def _default(field: Any) -> str:
+    """A tuning field's default as the YAML would say it."""
+    if field.is_required():
+        return "(required)"
+    v = field.get_default(call_default_factory=True)
+    if v is None:
+        return "`null`"
+    return f"`{v}`"
+
+
+def tuning_table(model: Any, only: Iterable[str] | None = None) -> str:
+    """key | default | meaning of an estimator's tuning model (its pydantic fields)."""
+    keys = list(model.model_fields) if only is None else list(only)
+    rows = [
+        [f"`{k}`", _default(model.model_fields[k]), model.model_fields[k].description or ""]
+        for k in keys
+    ]
+    return _table(["key", "default", "meaning"], rows)
+
+
+def tuning_sections() -> dict[str, str]:
+    """The ``estimator.tuning`` tables, read off the estimators' tuning models, so that the
+    documented defaults are the ones used."""
+    from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf, ukf_gp
+
+    hu, base = ekf_dpacf.HuTuning, ekf_dpacf.BaselineTuning
+    differ = [
+        k for k in hu.model_fields if _default(hu.model_fields[k]) != _default(base.model_fields[k])
+    ]
+    kabir, gp = ukf.KabirTuning, ukf_gp.UKFGPTuning
+    return {
+        "tuning: ekf-dpacf": tuning_table(hu),
+        "tuning: ekf-baseline": tuning_table(base, differ),
+        "tuning: ekf-depth": tuning_table(ekf_depth.DepthTuning),
+        "tuning: ukf": tuning_table(kabir),
+        "tuning: ukf-gp": tuning_table(
+            gp, [k for k in gp.model_fields if k not in kabir.model_fields]
+        ),
+    }
+
+
 def sections(files: dict[str, xr.Dataset] | None = None) -> dict[str, str]:
     """Every generated section of docs/formats.md, by name (from :func:`example_files`)."""
     files = example_files() if files is None else files
@@ -236,6 +280,7 @@ def sections(files: dict[str, xr.Dataset] | None = None) -> dict[str, str]:
     }
     out["estimates.nc"] = file_tables(estimates)
     out["estimates.nc estimators"] = estimators_table()
+    out.update(tuning_sections())
     unused = set(ATTRIBUTES) - {a for ds in files.values() for a in ds.attrs}
     if unused:
         raise ValueError(f"formats.ATTRIBUTES names attributes no file has: {sorted(unused)}")

@@ -187,6 +187,7 @@ def run_estimate(
         summary["nees"] = metrics.consistency(r.nees[None], r.nees_dof, r.t, scenario.window_s)
         summary["nis"] = metrics.consistency(r.nis[None], r.nis_dof[None], r.t, scenario.window_s)
         if plots:
+            assert x_true is not None  # r and x_true both come from the truth
             figures.plot_error_history(
                 hist,
                 x_true,
@@ -369,7 +370,7 @@ def assess(summary: dict[str, Any]) -> list[str]:
 def print_summary(summary: dict[str, Any], console: Console) -> None:
     """summary.json as a table: RMSE over the window, and for campaigns the median run;
     NEES/NIS outside their bounds are marked, and every warning is printed below."""
-    w = summary.get("window_s")
+    w = summary["window_s"]  # written by every run and campaign
     console.print(
         f"[bold]{summary.get('scenario')} / {summary.get('estimator')}[/], "
         f"{summary.get('runs')} run(s), steady-state window {w[0]:g}-{w[1]:g} s"

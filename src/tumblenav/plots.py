@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -28,6 +28,10 @@ from numpy.typing import NDArray  # noqa: E402
 
 from tumblenav.evaluation import metrics  # noqa: E402
 from tumblenav.io import atomic_write  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
+    from matplotlib.typing import ColorType
 
 Array = NDArray[np.float64]
 Span = tuple[float, float]
@@ -54,9 +58,15 @@ _UNITS = (
     ("_m", "m"),
     ("_s", "s"),
 )
-_OCCLUSION = {"facecolor": "none", "edgecolor": "tab:red", "hatch": "///", "alpha": 0.25, "lw": 0}
-_NO_UPDATE = {"facecolor": "0.5", "alpha": 0.18, "lw": 0}
-_WINDOW = {"facecolor": "tab:blue", "alpha": 0.08, "lw": 0}
+_OCCLUSION: dict[str, Any] = {
+    "facecolor": "none",
+    "edgecolor": "tab:red",
+    "hatch": "///",
+    "alpha": 0.25,
+    "lw": 0,
+}
+_NO_UPDATE: dict[str, Any] = {"facecolor": "0.5", "alpha": 0.18, "lw": 0}
+_WINDOW: dict[str, Any] = {"facecolor": "tab:blue", "alpha": 0.08, "lw": 0}
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
 
@@ -400,7 +410,8 @@ def error_panels(
             comp, comp_s = np.sqrt(np.mean(e3**2, axis=1)), np.sqrt(np.mean(s33**2, axis=1))
             mag = np.sqrt(np.mean(np.sum(e3**2, axis=-1), axis=1))
             mag_s = np.sqrt(np.mean(np.sum(s33**2, axis=-1), axis=1))
-            names, signed = ("x", "y", "z"), False
+            names: tuple[str, ...] = ("x", "y", "z")
+            signed = False
             label = f"{label}\n(over {e3.shape[1]} features)"
         else:
             comp, comp_s = e, s3
@@ -499,7 +510,7 @@ def error_history_figure(
             sub = f"\nestimate from t = {t_on[0]:.4g} s"
     else:
         sub = "\nno estimate in this run (the estimator never started)"
-    handles = [
+    handles: list[Artist] = [
         Line2D([], [], color=c, lw=1.2, label=a)
         for c, a in zip(_COLORS, ("x", "y", "z"), strict=False)
     ]
@@ -559,7 +570,7 @@ def rmse_figure(
 ) -> plt.Figure:
     """The figure of :func:`plot_rmse`, open."""
     fig, ax = plt.subplots(figsize=(8.5, 4.2), layout="constrained")
-    colors: dict[str, str] = {}
+    colors: dict[str, ColorType] = {}
     values, settled = [], []
     for label, (t, y) in curves.items():
         base = label.rsplit(" ", 1)[0] if label.endswith((" RMSE", " median")) else label

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
+import numpy.typing as npt
 import yaml
 from pydantic import (
     BaseModel,
@@ -40,7 +41,7 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
 
-def _finite(v: list[float] | float, what: str) -> None:
+def _finite(v: npt.ArrayLike, what: str) -> None:
     arr = np.atleast_1d(np.asarray(v, dtype=float))
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{what} must be finite numbers")
@@ -259,7 +260,10 @@ class NoiseConfig(_Model):
         return self
 
     def sigma_px(self, focal_px: float) -> float:
-        return self.pixels if self.pixels is not None else float(self.angular_rad) * focal_px
+        if self.pixels is not None:
+            return self.pixels
+        assert self.angular_rad is not None  # _one: exactly one of the two is given
+        return float(self.angular_rad) * focal_px
 
 
 class StereoSensorConfig(_Model):
@@ -307,6 +311,7 @@ class StereoSensorConfig(_Model):
     def focal_px(self) -> float:
         if self.focal_length_px is not None:
             return self.focal_length_px
+        assert self.fov_deg is not None  # _focal: focal_length_px or fov_deg is given
         return 0.5 * self.resolution_px[0] / math.tan(math.radians(self.fov_deg) / 2)
 
     @property

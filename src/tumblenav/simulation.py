@@ -26,7 +26,12 @@ from tumblenav.errors import InputError
 from tumblenav.frames import lvlh_axes
 from tumblenav.measurements import DepthMeasurements, StereoMeasurements
 from tumblenav.measurements._attrs import _a
-from tumblenav.scenario import RandomFeatures, Scenario, StereoSensorConfig
+from tumblenav.scenario import (
+    DepthSensorConfig,
+    RandomFeatures,
+    Scenario,
+    StereoSensorConfig,
+)
 
 Array = NDArray[np.float64]
 
@@ -337,6 +342,8 @@ def simulate_depth(
     from tumblenav.sensors.depth import DepthSensor, scan
 
     cfg = scenario.sensor
+    if not isinstance(cfg, DepthSensorConfig):
+        raise InputError(f"scenario {scenario.name} has a {cfg.kind} sensor, not a depth sensor")
     sensor = DepthSensor(
         np.radians(cfg.fov_deg),
         cfg.points,

@@ -61,7 +61,8 @@ def evaluate_runs(
     """Simulate, estimate and evaluate runs ``ks``; returns (k, RunErrors | None, error)."""
     est = est_base.get(estimator_name)
     context = context_from_scenario(scenario)  # what the estimator may know: no truth
-    sims, out = [], []
+    sims = []
+    out: list[tuple[int, Any, str | None]] = []
     for k in ks:
         try:
             ss = run_seed(base_seed, k)

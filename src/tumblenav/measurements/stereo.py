@@ -109,11 +109,13 @@ class StereoMeasurements:
     def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
         cams = []
         for k in range(2):
+            cu, cv = (float(x) for x in ds["principal_point_px"].values[k])
+            width, height = (int(x) for x in ds["resolution_px"].values[k])
             cams.append(
                 sensors.Camera(
                     focal_px=float(ds["focal_px"].values[k]),
-                    principal_point_px=tuple(float(x) for x in ds["principal_point_px"].values[k]),
-                    resolution_px=tuple(int(x) for x in ds["resolution_px"].values[k]),
+                    principal_point_px=(cu, cv),
+                    resolution_px=(width, height),
                     R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
                     p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
                 )

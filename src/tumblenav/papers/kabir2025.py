@@ -34,6 +34,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators import gp as gpm
 from tumblenav.estimators import ukf
 from tumblenav.frontends import projections as proj
+from tumblenav.measurements import StereoMeasurements
 from tumblenav.pipeline import run_montecarlo
 from tumblenav.scenario import Scenario, load_scenario
 from tumblenav.sensors.stereo import project
@@ -45,7 +46,7 @@ GP_FEATURE_M = (1.0, 1.0, 1.0)
 OCCLUSION_WINDOW_S = (1500.0, 3000.0)
 GOOD_RMSE_RAD = 1e-5
 # (label, estimator, occluded, extra tuning)
-FILTERS = (
+FILTERS: tuple[tuple[str, str, bool, dict[str, Any]], ...] = (
     ("ukf", "ukf", True, {}),
     ("benchmark", "ukf", False, {}),
     ("ukf-gp", "ukf-gp", True, {}),
@@ -142,7 +143,9 @@ def _gp_job(args: tuple[float, float, int, int]) -> dict[str, Any]:
 
     f_T, T_train, seed, k = args
     base = scenario_for(f_T)
-    feats = [list(GP_FEATURE_M)] + [list(p) for p in base.target.features_T_m[1:]]
+    listed = base.target.features_T_m
+    assert isinstance(listed, list)  # the kabir2025 scenario lists its features
+    feats = [list(GP_FEATURE_M)] + [list(p) for p in listed[1:]]
     sc = base.with_updates(  # feature 0 is the study's; the scenario needs three or more
         **{
             "target.features_T_m": feats,
@@ -152,6 +155,7 @@ def _gp_job(args: tuple[float, float, int, int]) -> dict[str, Any]:
         }
     )
     truth, meas = simulate(sc, np.random.SeedSequence(seed).spawn(k + 1)[k])
+    assert isinstance(meas, StereoMeasurements)  # the kabir2025 scenario has a stereo rig
     w, _ = proj.normalised(meas)
     f = meas.rig.left.focal_px
     cu, cv = meas.rig.left.principal_point_px
@@ -201,8 +205,8 @@ def gp_study(
             Progress(console=console, transient=True) as bar,
         ):
             task = bar.add_task("GP study", total=len(jobs))
-            for p, res in zip(paths, ex.map(_gp_job, jobs), strict=True):
-                io.write_json(res, p)
+            for p, result in zip(paths, ex.map(_gp_job, jobs), strict=True):
+                io.write_json(result, p)
                 bar.advance(task)
     cases = []
     for f in FREQS_HZ:
