@@ -75,11 +75,19 @@ class HuTuning(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     uses_dpacf: ClassVar[bool] = True
-    sigma_t2_m2_s4: float | None = Field(None, ge=0, description="default: scenario process_noise")
-    sigma_r2_rad2_s4: float | None = Field(
-        None, ge=0, description="default: scenario process_noise"
+    sigma_t2_m2_s4: float | None = Field(
+        None,
+        ge=0,
+        description="translational process noise (m^2/s^4); null: the scenario's "
+        "process_noise.translational_m2_s4 (the mission's assumption, in the context)",
     )
-    p0_rate_rad_s: float = Field(0.02, gt=0)
+    sigma_r2_rad2_s4: float | None = Field(
+        None,
+        ge=0,
+        description="rotational process noise (rad^2/s^4); null: the scenario's "
+        "process_noise.rotational_rad2_s4",
+    )
+    p0_rate_rad_s: float = Field(0.02, gt=0, description="initial 1-sigma of the rate (rad/s)")
     p0_inertia: float = Field(
         0.05,
         gt=0,
@@ -87,8 +95,10 @@ class HuTuning(BaseModel):
         "end's least-squares covariance of the ratios",
     )
     p0_mass_centre_m: float = Field(0.5, gt=0, description="CM offset from the feature centroid")
-    p0_velocity_m_s: float = Field(0.2, gt=0)
-    p0_unseen_feature_m: float = Field(3.0, gt=0)
+    p0_velocity_m_s: float = Field(0.2, gt=0, description="initial 1-sigma of the velocity (m/s)")
+    p0_unseen_feature_m: float = Field(
+        3.0, gt=0, description="initial 1-sigma of features not yet seen (m)"
+    )
     p0_attitude_rad: float = Field(0.5, gt=0, description="ekf-baseline initial attitude sigma")
     attitude_meas_every: int = Field(1, ge=1, description="use the DPACF attitude every k epochs")
     attitude_corr_time_s: float = Field(
@@ -105,9 +115,9 @@ class HuTuning(BaseModel):
         "inertia ratios is below this as well (beyond the paper: earlier, the least-squares "
         "ratios can be 4 sigma off, and the filter learns the ratios slowly, so its ratios "
         "stay near their start; ekf-baseline keeps the gate so that both start at the same "
-        "epoch); None: no gate. 0.03 until the seventh session; 0.01 since the template's "
-        "refinement makes it reachable by about 30 s: inertia RMSE 0.0123 -> 0.0049 over 100 "
-        "runs at 2e-5 rad, the start 8 s later (median 29 s)",
+        "epoch); null: no gate. 0.01 is reachable by about 30 s with the template's "
+        "refinement: inertia RMSE 0.0049 over 100 runs at 2e-5 rad instead of 0.0123 with "
+        "0.03, for a start 8 s later (benchmarks/hu2024_start_gate.py)",
     )
     dpacf_emit_sigma_rad: float = Field(
         0.2,
@@ -168,7 +178,8 @@ class HuTuning(BaseModel):
         "definition, and computes G with it from then on (beyond the paper, "
         "stereo_points._refine_template); a list: a refinement at each (the early one "
         "brings the DPACF in within 10 s, the later one makes it precise); 0 or []: never "
-        "(as until the seventh session). Both estimators share the front end, so that they "
+        "(the first sighting's template throughout). Both estimators share the front end, so "
+        "that they "
         "start on the same data",
     )
 
@@ -246,14 +257,17 @@ class HuTuning(BaseModel):
         "enough for this long (a motion that leaves the ratios poorly determined must not "
         "keep the filter from starting)",
     )
-    rate_half_window: int = Field(10, ge=1)
-    min_ls_epochs: int = Field(50, ge=3)
+    rate_half_window: int = Field(
+        10, ge=1, description="half-width (epochs) of the local fit that gives the rate of G"
+    )
+    min_ls_epochs: int = Field(
+        50, ge=3, description="epochs of rate data needed before the inertia is trusted"
+    )
     g_attitude_fit: Literal["full", "kabsch"] = Field(
         "full",
         description="G attitude per epoch: 'full' refines the Kabsch fit in the metric of the "
         "triangulated points' covariances (beyond the paper); 'kabsch' is the isotropic fit",
     )
-
 
     @model_validator(mode="after")
     def _dependent_defaults(self) -> HuTuning:
