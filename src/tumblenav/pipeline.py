@@ -21,7 +21,7 @@ from tumblenav.evaluation import metrics
 from tumblenav.measurements import DepthMeasurements, StereoMeasurements
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
-from tumblenav.simulation import Truth, run_streams, simulate
+from tumblenav.simulation import Truth, run_streams, simulate, simulate_truth
 
 
 def run_simulate(
@@ -204,6 +204,8 @@ def run_estimate(
             + str(hist.info.get("start_condition", "(see the estimator's documentation)"))
         )
     summary["warnings"] = assess(summary)
+    if truth is not None:
+        summary["warnings"] += evaluation.assumption_warnings(scenario.estimator.tuning, truth)
     io.write_json(summary, output / "summary.json")
     return summary
 
@@ -239,6 +241,8 @@ def run_montecarlo(
         console=console,
     )
     summary["warnings"] = assess(summary)
+    truth0 = simulate_truth(scenario, run_streams(run_seed(scenario.montecarlo.seed, 0))["features"])
+    summary["warnings"] += evaluation.assumption_warnings(scenario.estimator.tuning, truth0)
     io.write_json(summary, Path(output) / "summary.json")
     if plots:
         campaign_figures(Path(output), scenario, estimator, runs)

@@ -56,3 +56,30 @@ def error_states(
     x_true = np.stack([truth_state(tr, h) for h, tr in zip(histories, truths, strict=True)])
     err = np.stack([h.layout.boxminus(xt, h.x) for h, xt in zip(histories, x_true, strict=True)])
     return x_true, err
+
+
+def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
+    """Priors a user stated in an estimator's settings that the simulated truth contradicts
+    (one line each). A simulation may test a wrong prior on purpose, so this only warns:
+    Kabir 2025's known mass centre (``mass_centre_L_m``, ``mass_centre_velocity_L_m_s``)
+    against the truth's ``r_L``, ``v_L`` at the first epoch."""
+    tuning = tuning or {}
+    out = []
+    checks = (
+        ("mass_centre_L_m", "r_L", "m", 1e-3),
+        ("mass_centre_velocity_L_m_s", "v_L", "m/s", 1e-5),
+    )
+    for key, attr, unit, tol in checks:
+        if tuning.get(key) is None:
+            continue
+        stated = np.asarray(tuning[key], dtype=float)
+        true = np.asarray(getattr(truth, attr), dtype=float)[0]
+        off = float(np.linalg.norm(stated - true))
+        if off > tol + 1e-9 * float(np.linalg.norm(true)):
+            out.append(
+                f"estimator.tuning.{key} {np.round(stated, 6).tolist()} {unit} differs from "
+                f"the simulated truth {np.round(true, 6).tolist()} {unit} by {off:.3g} {unit}: "
+                "the filter takes it as known (Kabir 2025 Sec. 2.1); if that is not meant, set "
+                "it to the scenario's target.r0_L_m / v0_L_m_s"
+            )
+    return out
