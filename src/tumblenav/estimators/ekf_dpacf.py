@@ -43,7 +43,15 @@ from scipy import stats
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
-from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.estimators.base import (
+    Belief,
+    Block,
+    EstimateHistory,
+    StateLayout,
+    StepInfo,
+    fold,
+    register,
+)
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import stereo_points
@@ -1041,9 +1049,6 @@ def run_filter(
         stat = branch_statistics(fe.R_GT[:, ::every], fe.cov_frame[:, ::every])
         p_turn, mu_turn, S_turn = (np.repeat(a, every, axis=1)[:, :n] for a in stat)
     d = lay.dim
-    x = np.tile(_neutral_state(lay), (B, 1))
-    P = np.tile(np.eye(d), (B, 1, 1))
-    active = np.zeros(B, dtype=bool)
     gate = stats.chi2.ppf(tun.gate_probability, 3) if tun.gate_probability else np.inf
     if np.isfinite(gate) and tun.dpacf_measurement == "frame":
         raise InputError(
@@ -1060,8 +1065,6 @@ def run_filter(
     nis_dof = np.zeros((B, n))
     rejected = np.zeros(B, dtype=np.int64)
     diverged = np.zeros(B, dtype=bool)
-    flip_votes = np.zeros(B, dtype=np.int64)
-    f_first = np.full((B, N, 3), np.nan)  # first estimates of the features (FEJ option)
     flips = np.zeros(B, dtype=np.int64)
 
     def pack() -> dict[str, Any]:
@@ -1104,103 +1107,197 @@ def run_filter(
             S_turn, refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
         )  # fmt: skip
         return pack()
-    sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
-    srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
-    R_used = np.full((B, 3, 3), np.nan)  # 'consider': the frame each run's state is in
-    k_used = np.zeros(B, dtype=np.int64)  # and the epoch it is from (its statistics)
-    runs = np.arange(B)
-    for k in range(n):
-        if k > 0:
-            dt = t[k] - t[k - 1]
-            # --- predict (Hu 2024 eq. 36-39) ---
-            # F is block diagonal: rotation (9, state dependent) and translation (6, constant)
-            F = core_F(x[:, sw], x[:, sp], n_orbit, rotation_only=True)
-            Phr, Qr = discretise(F, core_Qc(x[:, sp], s_r2, s_t2)[:, :9, :9], dt)
-            Pht, Qt = _translation_discrete(n_orbit, s_t2, dt)
-            q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
-            x[:, sq], x[:, sw] = q_new, w_new
-            x[:, srv] = x[:, srv] @ Pht.T
-            P[:, :9, :] = Phr @ P[:, :9, :]
-            P[:, 9:15, :] = Pht @ P[:, 9:15, :]
-            P[:, :, :9] = P[:, :, :9] @ np.swapaxes(Phr, -1, -2)
-            P[:, :, 9:15] = P[:, :, 9:15] @ Pht.T
-            P[:, :9, :9] += Qr
-            P[:, 9:15, 9:15] += Qt
-            if tun.sigma_f2_m2_s > 0:
-                sf = lay.err("features")
-                P[:, sf, sf] += tun.sigma_f2_m2_s * dt * np.eye(sf.stop - sf.start)
-        start = (init.k0 == k) & ~diverged
-        if start.any():
-            x[start] = init.x0[start]
-            P[start] = init.P0[start]
-            R_used[start] = fe.R_GT[start, k]
-            active |= start
-        if active.any():
-            if consider:
-                k_used[_reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)] = k
-            if tun.dpacf_measurement == "frame":
-                use_att = "frame" if use_dpacf and k % tun.frame_meas_every == 0 else False
-            else:
-                use_att = use_dpacf and tun.attitude_update and (k % tun.attitude_meas_every == 0)
-            # a refined start has used its epoch's measurements already (refine_start_pose)
-            upd = active & ~start if refine else active
-            if use_dpacf and k % tun.attitude_meas_every == 0:
-                x, P, flip_votes = _follow_dpacf_branch(
-                    x, P, fe.q_TI[:, k], upd, lay, flip_votes, tun.flip_epochs, flips, f_first
-                )
-            if np.isfinite(gate):
-                x, P, nis_k, dof_k, rej = _update(
-                    x, P, fe, k, lay, use_att, gate, att_inflation, upd
-                )
-            else:
-                if tun.first_estimates_jacobian:
-                    fnow = x[:, lay.nom("features")].reshape(B, N, 3)
-                    fresh = (start[:, None] & fe.known_at[:, k]) | (
-                        active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0])
-                    )
-                    f_first = np.where(fresh[..., None], fnow, f_first)
-                f_l = f_first if tun.first_estimates_jacobian else None
-                x_pr, P_pr = x, P
-                x, P, nis_k, dof_k, rej = _update_sequential(
-                    x_pr, P_pr, fe, k, lay, use_att, att_inflation, upd, f_lin=f_l
-                )
-                # iterated update where the prior attitude is poorly known (after a gap)
-                its = upd & (
-                    np.trace(P_pr[:, lay.err("attitude"), lay.err("attitude")], axis1=-2, axis2=-1)
-                    > iter_var
-                )
-                if iter_var > 0 and its.any():
-                    for _ in range(tun.iterate_max):
-                        x2, P2, nis2, dof2, _r = _update_sequential(
-                            x_pr, P_pr, fe, k, lay, use_att, att_inflation, upd, f_lin=f_l,
-                            x_lin=x,
-                        )  # fmt: skip
-                        x = np.where(its[:, None], x2, x)
-                        P = np.where(its[:, None, None], P2, P)
-                        nis_k = np.where(its, nis2, nis_k)
-            # per run, so that a run's result never depends on the batch it is in
-            due = active & (start | (k % CONSTRAIN_EVERY == 0))
-            if due.any():
-                x, P = constrain_inertia(x, P, lay, due, curvature=tun.constraint_curvature)
-            bad = active & _diverged(x, P, lay)
-            if bad.any():  # a run that blew up is stopped (NaN from here on) and counted
-                diverged |= bad
-                active &= ~bad
-                x[bad] = _neutral_state(lay)
-                P[bad] = np.eye(d)
-            nis[:, k] = np.where(active & (dof_k > 0), nis_k, np.nan)
-            nis_dof[:, k] = np.where(active, dof_k, 0)
-            rejected += np.where(active, rej, 0)
-        out_x[active, k] = x[active]
-        if k % p_every == 0 and active.any():
-            P_rep = P
-            if consider:
-                ku = (runs, k_used)
-                P_rep = frame_consider_cov(
-                    x, P, fe.cov_frame[ku], lay, p_turn[ku], mu_turn[ku], S_turn[ku]
-                )
-            out_P[active, k // p_every] = P_rep[active]
+    # the reference engine: each run folded through Hu's steps (tumblenav.estimators.base.fold)
+    for b in range(B):
+        steps = HuSteps(
+            fe=_run_view(fe, b),
+            tun=tun,
+            use_dpacf=use_dpacf,
+            layout=lay,
+            k0=int(init.k0[b]),
+            x0=init.x0[b],
+            P0=init.P0[b],
+            n_orbit=n_orbit,
+            s_r2=s_r2,
+            s_t2=s_t2,
+            consider=consider,
+            refine=refine,
+            iter_var=iter_var,
+            gate=float(gate),
+            att_inflation=att_inflation,
+            p_turn=p_turn[b : b + 1],
+            mu_turn=mu_turn[b : b + 1],
+            S_turn=S_turn[b : b + 1],
+        )
+        r = fold(steps, t, p_every)
+        out_x[b], out_P[b], nis[b], nis_dof[b] = r.x, r.P, r.nis, r.nis_dof
+        rejected[b], diverged[b] = r.rejected, r.diverged
+        flips[b] = r.memo.flips if r.memo is not None else 0
     return pack()
+
+
+def _run_view(fe: stereo_points.PointsFrontEnd, b: int) -> stereo_points.PointsFrontEnd:
+    """Run ``b`` of a batched front end, as a batch of one (the arrays keep their run axis)."""
+    B = fe.usable.shape[0]
+    upd = {}
+    for f in dataclasses.fields(fe):
+        v = getattr(fe, f.name)
+        if f.name != "t" and isinstance(v, np.ndarray) and v.ndim and v.shape[0] == B:
+            upd[f.name] = v[b : b + 1]
+    upd["skipped"] = {k: np.asarray(v)[b : b + 1] for k, v in fe.skipped.items()}
+    view = dataclasses.replace(fe, **upd)
+    view.R_LI = fe.R_LI[b : b + 1]
+    return view
+
+
+@dataclass(frozen=True)
+class HuMemo:
+    """What Hu's filter carries from epoch to epoch besides x and P (one run): the
+    consecutive DPACF measurements a half turn away and the half turns followed
+    (:func:`_follow_dpacf_branch`), the features' first estimates (FEJ linearisation points,
+    (N, 3), NaN before), and with the 'consider' frame model the front end's frame the state
+    is in and the epoch it is from."""
+
+    votes: int
+    flips: int
+    f_first: Array
+    R_used: Array
+    k_used: int
+
+
+@dataclass(frozen=True)
+class HuSteps:
+    """Hu 2024's EKF (eq. 36-44) as stateless steps on one run's front-end output, folded by
+    :func:`tumblenav.estimators.base.fold`: the reference engine of :func:`run_filter`. The
+    compiled kernel (:mod:`._hu_kernel`) is the fast fold of the same steps (tested equal on
+    runs drawn at random). The arrays are those of a batch of one (leading axis 1), so that
+    the batched model pieces of this module serve both."""
+
+    fe: stereo_points.PointsFrontEnd
+    tun: HuTuning
+    use_dpacf: bool
+    layout: StateLayout
+    k0: int
+    x0: Array
+    P0: Array
+    n_orbit: float
+    s_r2: float
+    s_t2: float
+    consider: bool
+    refine: bool
+    iter_var: float
+    gate: float
+    att_inflation: float
+    p_turn: Array
+    mu_turn: Array
+    S_turn: Array
+
+    def initialise(self, k: int) -> Belief | None:
+        """The start prepared by :func:`_initial_state`, at its epoch ``k0``."""
+        if k != self.k0:
+            return None
+        N = self.fe.usable.shape[2]
+        memo = HuMemo(0, 0, np.full((N, 3), np.nan), self.fe.R_GT[0, k].copy(), 0)
+        t = float(self.fe.t[k])
+        return Belief(t, self.x0.copy(), self.P0.copy(), self.layout, memo)
+
+    def predict(self, belief: Belief, t: float) -> Belief:
+        """Hu 2024 eq. 36-39: F is block diagonal, rotation (9, state dependent) and
+        translation (6, constant)."""
+        lay, tun = self.layout, self.tun
+        sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
+        srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
+        dt = t - belief.t
+        x, P = belief.x[None].copy(), belief.P[None].copy()
+        F = core_F(x[:, sw], x[:, sp], self.n_orbit, rotation_only=True)
+        Phr, Qr = discretise(F, core_Qc(x[:, sp], self.s_r2, self.s_t2)[:, :9, :9], dt)
+        Pht, Qt = _translation_discrete(self.n_orbit, self.s_t2, dt)
+        q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
+        x[:, sq], x[:, sw] = q_new, w_new
+        x[:, srv] = x[:, srv] @ Pht.T
+        P[:, :9, :] = Phr @ P[:, :9, :]
+        P[:, 9:15, :] = Pht @ P[:, 9:15, :]
+        P[:, :, :9] = P[:, :, :9] @ np.swapaxes(Phr, -1, -2)
+        P[:, :, 9:15] = P[:, :, 9:15] @ Pht.T
+        P[:, :9, :9] += Qr
+        P[:, 9:15, 9:15] += Qt
+        if tun.sigma_f2_m2_s > 0:
+            sf = lay.err("features")
+            P[:, sf, sf] += tun.sigma_f2_m2_s * dt * np.eye(sf.stop - sf.start)
+        return dataclasses.replace(belief, t=t, x=x[0], P=P[0])
+
+    def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
+        """Epoch ``k``'s measurements: the frame change ('consider'), the DPACF branch, the
+        feature (eq. 32-35) and attitude (eq. 31) updates, iterated where the prior attitude
+        is poorly known, the inertia constraint; a blown-up state is reported diverged."""
+        lay, tun, fe = self.layout, self.tun, self.fe
+        m = belief.memo
+        x, P = belief.x[None].copy(), belief.P[None].copy()
+        f_first, R_used = m.f_first[None].copy(), m.R_used[None].copy()
+        k_used = np.array([m.k_used])
+        votes, flips = np.array([m.votes]), np.array([m.flips])
+        active, start = np.array([True]), np.array([started])
+        if self.consider:
+            k_used[_reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)] = k
+        if tun.dpacf_measurement == "frame":
+            use_att = "frame" if self.use_dpacf and k % tun.frame_meas_every == 0 else False
+        else:
+            use_att = self.use_dpacf and tun.attitude_update and (k % tun.attitude_meas_every == 0)
+        # a refined start has used its epoch's measurements already (refine_start_pose)
+        upd = active & ~start if self.refine else active
+        if self.use_dpacf and k % tun.attitude_meas_every == 0:
+            x, P, votes = _follow_dpacf_branch(
+                x, P, fe.q_TI[:, k], upd, lay, votes, tun.flip_epochs, flips, f_first
+            )
+        if np.isfinite(self.gate):
+            x, P, nis_k, dof_k, rej = _update(
+                x, P, fe, k, lay, use_att, self.gate, self.att_inflation, upd
+            )
+        else:
+            if tun.first_estimates_jacobian:
+                N = f_first.shape[1]
+                fnow = x[:, lay.nom("features")].reshape(1, N, 3)
+                fresh = (start[:, None] & fe.known_at[:, k]) | (
+                    active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0])
+                )
+                f_first = np.where(fresh[..., None], fnow, f_first)
+            f_l = f_first if tun.first_estimates_jacobian else None
+            x_pr, P_pr = x, P
+            x, P, nis_k, dof_k, rej = _update_sequential(
+                x_pr, P_pr, fe, k, lay, use_att, self.att_inflation, upd, f_lin=f_l
+            )
+            # iterated update where the prior attitude is poorly known (after a gap)
+            its = upd & (
+                np.trace(P_pr[:, lay.err("attitude"), lay.err("attitude")], axis1=-2, axis2=-1)
+                > self.iter_var
+            )
+            if self.iter_var > 0 and its.any():
+                for _ in range(tun.iterate_max):
+                    x2, P2, nis2, _dof2, _r = _update_sequential(
+                        x_pr, P_pr, fe, k, lay, use_att, self.att_inflation, upd, f_lin=f_l,
+                        x_lin=x,
+                    )  # fmt: skip
+                    x = np.where(its[:, None], x2, x)
+                    P = np.where(its[:, None, None], P2, P)
+                    nis_k = np.where(its, nis2, nis_k)
+        if started or k % CONSTRAIN_EVERY == 0:
+            x, P = constrain_inertia(x, P, lay, active, curvature=tun.constraint_curvature)
+        memo = HuMemo(int(votes[0]), int(flips[0]), f_first[0], R_used[0], int(k_used[0]))
+        out = dataclasses.replace(belief, x=x[0], P=P[0], memo=memo)
+        if _diverged(x, P, lay)[0]:
+            return out, StepInfo(diverged=True)
+        return out, StepInfo(float(nis_k[0]), int(dof_k[0]), int(rej[0]))
+
+    def report(self, belief: Belief, k: int) -> Array:
+        """The covariance reported: with the 'consider' frame model it also holds the
+        frame's own error and half turns (:func:`frame_consider_cov`)."""
+        if not self.consider:
+            return belief.P
+        ku = (np.array([0]), np.array([belief.memo.k_used]))
+        return frame_consider_cov(
+            belief.x[None], belief.P[None], self.fe.cov_frame[ku], self.layout,
+            self.p_turn[ku], self.mu_turn[ku], self.S_turn[ku],
+        )[0]  # fmt: skip
 
 
 _FLIPS = np.array(
