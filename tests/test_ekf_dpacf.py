@@ -435,6 +435,12 @@ def test_canonical_frame_and_truth_in_frame(q_GT, q_TI, w, a, t_G, seed):
     assert np.linalg.det(R) == 1.0
     # not merely snapped: with an exact template R_T'T = R_GT'^T R_GT is a signed permutation
     R_GTc = principal_frame(R_GT @ np.diag(moments) @ R_GT.T)
+    # ... except where the DPACF sign rules meet a tie (a zero component, or two components of
+    # equal magnitude: frontends.inertia.principal_frame, rules 2-3, undefined there): then
+    # the frame of the rounded alignment may take either branch. Found by hypothesis with
+    # q_GT = [1, 0, 1, 1]/sqrt(3), whose principal axes have exact zeros and ties
+    mags = np.sort(np.abs(R_GTc), axis=0)
+    assume(mags.min() > 1e-6 and np.diff(mags, axis=0).min() > 1e-6)
     np.testing.assert_allclose(R, R_GTc.T @ R_GT, atol=1e-8)
 
     lay = hu.layout(6)

@@ -989,7 +989,7 @@ def test_refined_template_steadies_g_and_is_causal():
     sims = [simulate(s, run_seed(3, k)) for k in range(4)]
     meas = [m for _, m in sims]
     fe = {v: hu.frontend(meas, hu.parse_tuning({"template_refine_s": v})) for v in (0.0, 30.0)}
-    h = hu.parse_tuning({}).rate_half_window
+    h = hu.parse_tuning({}).frontend.rate_half_window
     for b, (truth, _) in enumerate(sims):
         first = int(np.argmax(fe[0.0].known_at[b].any(axis=1)))
         k_ref = -(-(first + 300) // 10) * 10  # at a least-squares solution (every 10)

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import xarray as xr
+from pydantic import BaseModel
 
 from tumblenav import io
 from tumblenav.estimators.base import EstimateHistory, StateLayout
@@ -235,6 +236,8 @@ def _default(field: Any) -> str:
     v = field.get_default(call_default_factory=True)
     if v is None:
         return "`null`"
+    if isinstance(v, BaseModel):  # a nested settings model: its own table
+        return "(a mapping: its keys below)"
     return f"`{v}`"
 
 
@@ -252,6 +255,7 @@ def tuning_sections() -> dict[str, str]:
     """The ``estimator.tuning`` tables, read off the estimators' tuning models, so that the
     documented defaults are the ones used."""
     from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf, ukf_gp
+    from tumblenav.frontends.stereo_points import StereoPointsTuning
 
     hu, base = ekf_dpacf.HuTuning, ekf_dpacf.BaselineTuning
     differ = [
@@ -260,6 +264,7 @@ def tuning_sections() -> dict[str, str]:
     kabir, gp = ukf.KabirTuning, ukf_gp.UKFGPTuning
     return {
         "tuning: ekf-dpacf": tuning_table(hu),
+        "tuning: stereo-points front end": tuning_table(StereoPointsTuning),
         "tuning: ekf-baseline": tuning_table(base, differ),
         "tuning: ekf-depth": tuning_table(ekf_depth.DepthTuning),
         "tuning: ukf": tuning_table(kabir),

@@ -38,7 +38,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import stats
 
 from tumblenav import rotations as rot
@@ -56,6 +56,7 @@ from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import stereo_points
 from tumblenav.frontends.inertia import branch_statistics, inertia_ratios
+from tumblenav.frontends.stereo_points import StereoPointsTuning
 from tumblenav.measurements import STEREO_TRACKS
 
 Array = NDArray[np.float64]
@@ -127,13 +128,6 @@ class HuTuning(BaseModel):
         "refinement: inertia RMSE 0.0049 over 100 runs at 2e-5 rad instead of 0.0123 with "
         "0.03, for a start 8 s later (benchmarks/hu2024_start_gate.py)",
     )
-    dpacf_emit_sigma_rad: float = Field(
-        0.2,
-        gt=0,
-        description="the front end gives a DPACF frame (Hu 2024 Fig. 5, the filter's attitude "
-        "measurement) once its 1-sigma is below this; the filter itself starts at "
-        "max_dpacf_sigma_rad",
-    )
     dpacf_measurement: Literal["attitude", "frame"] = Field(
         "attitude",
         description="'attitude': Hu 2024 eq. 31 (q_TI = q_TG q_GI, every epoch); 'frame': the "
@@ -179,35 +173,6 @@ class HuTuning(BaseModel):
         "uncertain). Not with gate_probability",
     )
     iterate_max: int = Field(2, ge=0, description="the iterated update's extra iterations")
-    template_refine_s: float | list[float] = Field(
-        [8.0, 10.0, 30.0],
-        description="the front end refits its template (the features' G coordinates, from "
-        "their first sighting) to all their views over this many seconds after G's "
-        "definition, and computes G with it from then on (beyond the paper, "
-        "stereo_points._refine_template); a list: a refinement at each (the early one "
-        "brings the DPACF in within 10 s, the later one makes it precise); 0 or []: never "
-        "(the first sighting's template throughout). Both estimators share the front end, so "
-        "that they "
-        "start on the same data",
-    )
-
-    ls_unbiased_rates: bool = Field(
-        True,
-        description="the inertia least squares takes, from the template's last refinement "
-        "on, the rates of the cubic (unbiased) fit at every epoch, past ones reprocessed "
-        "(beyond the paper): the line fit, chosen where its error is smaller epoch by "
-        "epoch, has a third-order bias that does not average out over the growing batch "
-        "(inertia ratios 1.2e-3 -> 4e-5 off at 200 s, 2e-5 rad, "
-        "benchmarks/hu2024_refinement_checks.py schedule); false: the per-epoch choice "
-        "throughout. No effect without a refinement",
-    )
-
-    @field_validator("template_refine_s")
-    @classmethod
-    def _refine_times(cls, v: float | list[float]) -> float | list[float]:
-        if any(x < 0 or not np.isfinite(x) for x in np.atleast_1d(np.asarray(v, dtype=float))):
-            raise ValueError("template_refine_s: times must be finite and >= 0 s")
-        return v
 
     p0_mass_centre_floor_m: float = Field(
         0.015,
@@ -265,17 +230,24 @@ class HuTuning(BaseModel):
         "enough for this long (a motion that leaves the ratios poorly determined must not "
         "keep the filter from starting)",
     )
-    rate_half_window: int = Field(
-        10, ge=1, description="half-width (epochs) of the local fit that gives the rate of G"
+
+    frontend: StereoPointsTuning = Field(
+        default_factory=StereoPointsTuning,
+        description="the stereo-points front end's settings (StereoPointsTuning); both "
+        "estimators share the front end, so that they start on the same data",
     )
-    min_ls_epochs: int = Field(
-        50, ge=3, description="epochs of rate data needed before the inertia is trusted"
-    )
-    g_attitude_fit: Literal["full", "kabsch"] = Field(
-        "full",
-        description="G attitude per epoch: 'full' refines the Kabsch fit in the metric of the "
-        "triangulated points' covariances (beyond the paper); 'kabsch' is the isotropic fit",
-    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _front_end_keys(cls, raw: Any) -> Any:
+        """Front-end keys given at the top level (as before they moved) go to ``frontend``."""
+        if not isinstance(raw, dict):
+            return raw
+        moved = {k: raw[k] for k in StereoPointsTuning.model_fields if k in raw}
+        if not moved:
+            return raw
+        rest = {k: v for k, v in raw.items() if k not in moved}
+        return {**rest, "frontend": {**moved, **dict(raw.get("frontend") or {})}}
 
     @model_validator(mode="after")
     def _dependent_defaults(self) -> HuTuning:
@@ -720,7 +692,7 @@ def _initial_state(
         # or the joint fit's feature) of the features seen at both
         # (the centroid's velocity adds omega x (centroid - mass centre)); else of the
         # centroid of the features seen at both
-        h = min(tun.rate_half_window * 2, k)
+        h = min(tun.frontend.rate_half_window * 2, k)
         common = u & fe.usable[b, k - h] & kn if h > 0 else u
         G_ok = (
             tun.mass_centre_init in ("rotation", "joint")
@@ -1660,19 +1632,21 @@ def filter_view(
 
 
 def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
-    fe = stereo_points.process(
+    """The stereo-points front end on B runs, with the settings ``tun.frontend``."""
+    fe = tun.frontend
+    out = stereo_points.process(
         meas_list,
         stereo_points.FrontEndSettings(
-            rate_half_window=tun.rate_half_window,
-            min_ls_epochs=tun.min_ls_epochs,
-            max_dpacf_sigma_rad=max(tun.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
-            g_fit=tun.g_attitude_fit,
-            template_refine_s=tuple(np.atleast_1d(np.asarray(tun.template_refine_s, float))),
-            unbiased_last=tun.ls_unbiased_rates,
+            rate_half_window=fe.rate_half_window,
+            min_ls_epochs=fe.min_ls_epochs,
+            max_dpacf_sigma_rad=max(fe.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
+            g_fit=fe.g_attitude_fit,
+            template_refine_s=tuple(np.atleast_1d(np.asarray(fe.template_refine_s, float))),
+            unbiased_last=fe.ls_unbiased_rates,
         ),
     )
-    fe.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
-    return fe
+    out.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
+    return out
 
 
 ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)

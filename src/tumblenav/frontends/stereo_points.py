@@ -27,9 +27,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from itertools import combinations
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from tumblenav import rotations as rot
 from tumblenav.frontends import _points_kernel
@@ -58,6 +60,60 @@ class FrontEndSettings:
     template_refine_s: float | tuple[float, ...] = 0.0
     # after the last refinement, the least squares' rows from the unbiased (cubic) rate fit
     unbiased_last: bool = True
+
+
+class StereoPointsTuning(BaseModel):
+    """Settings of the stereo-points front end (Hu 2024 Sec. 2-3: triangulation, the
+    photogrammetric frame G, the inertia least squares and the DPACF frame), under
+    ``estimator.tuning.frontend`` of ekf-dpacf and ekf-baseline (the same keys at the top of
+    ``estimator.tuning`` are still read, as before)."""
+
+    model_config = ConfigDict(extra="forbid")
+    rate_half_window: int = Field(
+        10, ge=1, description="half-width (epochs) of the local fit that gives the rate of G"
+    )
+    min_ls_epochs: int = Field(
+        50, ge=3, description="epochs of rate data needed before the inertia is trusted"
+    )
+    g_attitude_fit: Literal["full", "kabsch"] = Field(
+        "full",
+        description="G attitude per epoch: 'full' refines the Kabsch fit in the metric of the "
+        "triangulated points' covariances (beyond the paper); 'kabsch' is the isotropic fit",
+    )
+    dpacf_emit_sigma_rad: float = Field(
+        0.2,
+        gt=0,
+        description="the front end gives a DPACF frame (Hu 2024 Fig. 5, the filter's attitude "
+        "measurement) once its 1-sigma is below this; the filter itself starts at "
+        "max_dpacf_sigma_rad",
+    )
+    template_refine_s: float | list[float] = Field(
+        [8.0, 10.0, 30.0],
+        description="the front end refits its template (the features' G coordinates, from "
+        "their first sighting) to all their views over this many seconds after G's "
+        "definition, and computes G with it from then on (beyond the paper, "
+        "stereo_points._refine_template); a list: a refinement at each (the early one "
+        "brings the DPACF in within 10 s, the later one makes it precise); 0 or []: never "
+        "(the first sighting's template throughout). Both estimators share the front end, so "
+        "that they start on the same data",
+    )
+    ls_unbiased_rates: bool = Field(
+        True,
+        description="the inertia least squares takes, from the template's last refinement "
+        "on, the rates of the cubic (unbiased) fit at every epoch, past ones reprocessed "
+        "(beyond the paper): the line fit, chosen where its error is smaller epoch by "
+        "epoch, has a third-order bias that does not average out over the growing batch "
+        "(inertia ratios 1.2e-3 -> 4e-5 off at 200 s, 2e-5 rad, "
+        "benchmarks/hu2024_refinement_checks.py schedule); false: the per-epoch choice "
+        "throughout. No effect without a refinement",
+    )
+
+    @field_validator("template_refine_s")
+    @classmethod
+    def _refine_times(cls, v: float | list[float]) -> float | list[float]:
+        if any(x < 0 or not np.isfinite(x) for x in np.atleast_1d(np.asarray(v, dtype=float))):
+            raise ValueError("template_refine_s: times must be finite and >= 0 s")
+        return v
 
 
 @dataclass
