@@ -453,3 +453,101 @@ def test_j2_changes_relative_motion_slightly():
     assert np.max(np.linalg.norm(a.v_L - b.v_L, axis=1)) < 1e-3
     # the absolute orbits differ by much more (J2 acceleration ~1e-2 m/s^2)
     assert np.max(np.linalg.norm(a.chaser_r_I - b.chaser_r_I, axis=1)) > 10.0
+
+
+# --------------------------------------------------------------------------------------------
+# integrators: the filters' RK4 and series discretisation, and their compiled twin
+# --------------------------------------------------------------------------------------------
+def test_rk4_step_is_fourth_order_against_the_closed_form():
+    """y' = A y (rotation + decay) has y(t) = expm(A t) y0: one RK4 step errs O(dt^5), so the
+    error over a fixed span falls 16x when dt halves; the pure spin (exact kinematics,
+    constant rate) against exp_quat."""
+    A = np.array([[-0.1, 1.0], [-1.0, -0.1]])
+    y0 = (np.array([1.0, 0.5]),)
+    errors = []
+    for n in (20, 40, 80):
+        dt = 2.0 / n
+        y = y0
+        for _ in range(n):
+            y = dyn.rk4_step(lambda v: (A @ v,), y, dt)
+        errors.append(np.linalg.norm(y[0] - expm(2.0 * A) @ y0[0]))
+    assert 14.0 < errors[0] / errors[1] < 17.0 and 14.0 < errors[1] / errors[2] < 17.0
+    assert errors[-1] < 1e-8
+    # several arrays, stacks: dq_TI/dt = -1/2 [w;0] (x) q with constant w
+    w = np.array([[0.0, 0.0, 0.4], [0.3, -0.2, 0.1]])
+    q, wq = Q0[None].repeat(2, 0), w
+    for _ in range(100):
+        q, wq = dyn.rk4_step(lambda q_, w_: (rot.quat_derivative(q_, w_), 0.0 * w_), (q, wq), 0.1)
+    q_ref = rot.quat_multiply(rot.exp_quat(-10.0 * w), Q0)
+    # RK4's phase error on the half-rate rotation of q: 100 (0.4 x 0.1 / 2)^5 / 120 = 2.7e-9
+    # per component, twice that in angle
+    err = rot.quat_angle(rot.quat_multiply(q, rot.quat_conjugate(q_ref)))
+    assert np.max(err) < 6e-9
+
+
+@pytest.mark.parametrize("dt", [0.1, 1.0])
+def test_discretise_matches_expm_and_van_loan(dt):
+    """Phi to dt^4 and Q_k to dt^3 against the exact exp(F dt) and Van Loan's integral
+    (Hu 2024 eq. 38-39), with the truncation orders as tolerances."""
+    rng = np.random.default_rng(7)
+    F = 0.2 * rng.normal(size=(5, 5))
+    G = rng.normal(size=(5, 5))
+    Qc = G @ G.T
+    Phi, Qk = dyn.discretise(F, Qc, dt)
+    assert np.allclose(Phi, expm(F * dt), rtol=0, atol=(0.2 * 5 * dt) ** 5 / 120)
+    M = expm(np.block([[-F, Qc], [np.zeros((5, 5)), F.T]]) * dt)  # Van Loan 1978
+    Qk_exact = M[5:, 5:].T @ M[:5, 5:]
+    assert np.allclose(Qk, Qk_exact, rtol=0, atol=np.abs(Qc).max() * (1.0 * dt) ** 4)
+    assert np.array_equal(Qk, Qk.T)
+    # stacks
+    Phis, Qks = dyn.discretise(np.stack([F, 2 * F]), np.stack([Qc, Qc]), dt)
+    assert np.allclose(Phis[0], Phi) and np.allclose(Qks[0], Qk)
+
+
+@pytest.mark.parametrize("n", [1.1259e-3, 0.0])
+def test_cw_discrete_is_the_closed_form_cw_transition(n):
+    """The filters' discrete CW model: Phi is the closed form cw_stm up to the series' first
+    omitted term (dt (n dt)^4 / 30, in the position-from-velocity entries), Q_d the Van Loan
+    integral of a white acceleration; fresh arrays per call (cached inside)."""
+    q = 1e-6
+    for dt in (0.1, 1.0, 5.0):
+        Phi, Qd = dyn.cw_discrete(n, q, dt)
+        assert np.allclose(Phi, dyn.cw_stm(n, dt), rtol=0, atol=1e-15 + dt * (n * dt) ** 4 / 20)
+        A = dyn.hill_matrix(n)
+        Qc = np.zeros((6, 6))
+        Qc[3:, 3:] = q * np.eye(3)
+        M = expm(np.block([[-A, Qc], [np.zeros((6, 6)), A.T]]) * dt)
+        # series to dt^3: the first omitted term is ~ n q dt^4 (the Coriolis coupling); none
+        # for n = 0, where A is nilpotent and the series exact
+        assert np.allclose(Qd, M[6:, 6:].T @ M[:6, 6:], rtol=1e-9, atol=n * q * dt**4)
+    Phi[:] = 0.0  # the caller owns its copy: the cached one is untouched
+    assert np.allclose(dyn.cw_discrete(n, q, 5.0)[0], dyn.cw_stm(n, 5.0), atol=1e-9)
+
+
+@given(_rate, _rate, _rate, _moment, _moment, _moment)
+def test_euler_coefficient_form_equals_the_euler_equations(w1, w2, w3, i1, i2, i3):
+    inertia = np.array([i1, i2, i3])
+    assume(min(inertia) > 0.05 * max(inertia))
+    w = np.array([w1, w2, w3])
+    c = dyn.euler_coefficients(inertia)
+    assert np.allclose(dyn.euler_rhs_coefficients(w, c), dyn.euler_rhs(w, inertia), atol=1e-15)
+
+
+@given(_rate, _rate, _rate, _moment, _moment, _moment)
+def test_compiled_rk4_attitude_equals_the_numpy_rk4(w1, w2, w3, i1, i2, i3):
+    """dynamics.compiled.rk4_attitude against rk4_step on quat_derivative and
+    euler_rhs_coefficients (no fastmath when called from Python: equal to rounding)."""
+    from tumblenav.dynamics.compiled import rk4_attitude
+
+    w = np.array([w1, w2, w3])
+    c = dyn.euler_coefficients(np.array([i1, i2, i3]))
+    dt = 0.5
+
+    def f(q_, w_):
+        return rot.quat_derivative(q_, w_), dyn.euler_rhs_coefficients(w_, c)
+
+    q_ref, w_ref = dyn.rk4_step(f, (Q0, w), dt)
+    q_out, w_out = np.empty(4), np.empty(3)
+    rk4_attitude(Q0.copy(), w.copy(), c, dt, q_out, w_out)
+    np.testing.assert_allclose(q_out, q_ref, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(w_out, w_ref, rtol=1e-13, atol=1e-15)

@@ -1,13 +1,16 @@
 """ekf-depth (Yu 2019 Sec. 3): Jacobians against finite differences, and an end-to-end run."""
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+from tumblenav.estimators import base
 from tumblenav.estimators import ekf_depth as D
-from tumblenav.evaluation import alignment
+from tumblenav.evaluation import alignment, metrics
 from tumblenav.testing import numerical_jacobian
 
 vec = arrays(np.float64, 3, elements=st.floats(-0.3, 0.3))
@@ -16,11 +19,12 @@ vec = arrays(np.float64, 3, elements=st.floats(-0.3, 0.3))
 def _state(w, l_off, b, seed=0):
     rng = np.random.default_rng(seed)
     x = np.zeros(D.LAYOUT.nominal_dim)
-    x[0:4] = rot.quat_normalize(rng.normal(size=4))
-    x[4:7] = w
-    x[7:12] = np.array([0.5, 0.67, 0.0, 0.0, 0.0]) + np.r_[0.0, 0.0, l_off]
-    x[12:15] = [25.0, 0.3, -0.2]
-    x[18:21] = b
+    nom = D.LAYOUT.nom
+    x[nom("attitude")] = rot.quat_normalize(rng.normal(size=4))
+    x[nom("rate")] = w
+    x[nom("inertia")] = np.array([0.5, 0.67, 0.0, 0.0, 0.0]) + np.r_[0.0, 0.0, l_off]
+    x[nom("position")] = [25.0, 0.3, -0.2]
+    x[nom("offset")] = b
     return x
 
 
@@ -42,15 +46,16 @@ def test_rotational_jacobian_eq28(w, l_off):
     dt = 1e-4
 
     def step(xx):
-        out, _ = D._propagate(xx, np.eye(20), dt, 0.0, 0.0)
+        out, _ = D._propagate(xx, np.eye(D.LAYOUT.dim), dt, 0.0, 0.0)
         return out
 
     x1 = step(x)
     num = numerical_jacobian(
         step, x, boxplus=D.LAYOUT.boxplus, boxminus=D.LAYOUT.boxminus, dim=D.LAYOUT.dim
     )
-    F = D.rotational_F(x[4:7], x[7:12])
-    assert np.allclose((num[:11, :11] - np.eye(11)) / dt, F, atol=1e-3)
+    F = D.rotational_F(x[D.LAYOUT.nom("rate")], x[D.LAYOUT.nom("inertia")])
+    rot_err = slice(0, D.LAYOUT.err("inertia").stop)  # [dtheta, domega, dl]
+    assert np.allclose((num[rot_err, rot_err] - np.eye(F.shape[0])) / dt, F, atol=1e-3)
     assert np.all(np.isfinite(x1))
 
 
@@ -89,14 +94,14 @@ def test_ekf_depth_translation_and_offset_are_consistent():
     est = D.DepthEKF()
     hist = est.run(s, meas, np.random.default_rng(0))
     dx = hist.layout.boxminus(alignment.truth_state(truth, hist), hist.x)
-    block = slice(11, 20)  # position, velocity, offset
-    window = np.flatnonzero(hist.t >= 150.0)
-    nees = [dx[k, block] @ np.linalg.solve(hist.P[k][block, block], dx[k, block]) for k in window]
+    block = slice(hist.layout.err("position").start, hist.layout.err("offset").stop)  # r, v, b
+    window = hist.t >= 150.0
+    nees = metrics.nees(dx[window][:, block], hist.P[window][:, block, block])
     # 9 dof, 51 correlated epochs of one run: loose bounds, but 3.0 without the inflation
     assert 0.2 < np.mean(nees) / 9 < 1.5
     # Iyy/Ixx and Izz/Ixx do not enter the dynamics of this spin about z: the Schmidt update
     # leaves their sigma at the prior (0.1); with a plain update Iyy/Ixx fell to 0.080
-    sig = np.sqrt(np.diag(hist.P[-1]))[6:8]
+    sig = np.sqrt(np.diag(hist.P[-1]))[hist.layout.err("inertia")][0:2]
     assert np.all(sig > 0.095), sig
 
 
@@ -146,8 +151,27 @@ def test_unexcited_ratios_are_those_a_principal_axis_spin_does_not_see():
 
 def test_default_inertia_sigma_matches_the_initial_guess():
     """A sphere start is 0.3-0.5 off a real satellite's ratios: its default P0 sigma is 0.5;
-    a start drawn near the truth (Yu 2019's protocol) keeps Yu's 0.1; a given value wins."""
-    assert D._sigma_inertia(D.DepthTuning()) == 0.5
+    a start drawn near the truth (Yu 2019's protocol) keeps Yu's 0.1; a given value wins.
+    The tuning shows the rule ('inertia_init') and both values as fields."""
+    tun = D.DepthTuning()
+    assert (tun.P0_sigma_inertia, tun.P0_sigma_inertia_sphere) == ("inertia_init", 0.5)
+    assert D._sigma_inertia(tun) == 0.5
     assert D._sigma_inertia(D.DepthTuning(inertia_init="given")) == 0.1
     assert D._sigma_inertia(D.DepthTuning(P0_sigma_inertia=0.2)) == 0.2
-    assert np.allclose(np.diag(D._P0(D.DepthTuning()))[6:11], 0.25)
+    assert D._sigma_inertia(D.DepthTuning(P0_sigma_inertia_sphere=0.3)) == 0.3
+    assert np.allclose(np.diag(D._P0(tun))[D.LAYOUT.err("inertia")], 0.25)
+
+
+def test_plane_threshold_rule_and_former_keys():
+    """3 sigma of the range noise, at least 1 mm, unless given in metres; null (the former
+    default) means the rule; a bad value names the key and the rule."""
+    tun = D.DepthTuning()
+    assert (tun.plane_threshold_m, tun.plane_threshold_sigmas) == ("range_noise", 3.0)
+    assert D.plane_threshold(tun, 0.01) == 3 * 0.01
+    assert D.plane_threshold(tun, 0.0) == 1e-3
+    assert D.plane_threshold(D.DepthTuning(plane_threshold_m=0.05), 0.01) == 0.05
+    assert D.plane_threshold(D.DepthTuning(plane_threshold_sigmas=4.0), 0.01) == 4 * 0.01
+    former = base.parse_tuning({"plane_threshold_m": None, "P0_sigma_inertia": None}, D.DepthTuning)
+    assert former == tun
+    with pytest.raises(InputError, match="estimator.tuning.plane_threshold_m: .*'range_noise'"):
+        base.parse_tuning({"plane_threshold_m": -1.0}, D.DepthTuning)

@@ -94,3 +94,28 @@ def test_stacks_broadcast():
     assert rot.quat_to_matrix(q).shape == (5, 7, 3, 3)
     assert rot.quat_multiply(q, q[0]).shape == (5, 7, 4)
     assert rot.matrix_to_quat(rot.quat_to_matrix(q)).shape == (5, 7, 4)
+
+
+# --- the fast twins (matrix-product forms for large stacks) equal the references ----------
+stack4 = arrays(np.float64, (5, 4), elements=finite).filter(
+    lambda q: np.all(np.linalg.norm(q, axis=-1) > 0.1)
+)
+stack3 = arrays(np.float64, (5, 3), elements=st.floats(-3.0, 3.0, allow_nan=False))
+
+
+@given(stack4, stack4, stack3)
+def test_fast_twins_equal_the_references(p, q, w):
+    # stacks and broadcasting as the unscented filters use them
+    np.testing.assert_allclose(rot.quat_multiply_fast(p, q), rot.quat_multiply(p, q), atol=1e-15)
+    np.testing.assert_allclose(
+        rot.quat_multiply_fast(p[:, None], q[None]), rot.quat_multiply(p[:, None], q[None]),
+        atol=1e-15,
+    )  # fmt: skip
+    np.testing.assert_allclose(
+        rot.quat_derivative_fast(q, w), rot.quat_derivative(q, w), atol=1e-14
+    )
+    # not necessarily unit: both normalise
+    np.testing.assert_allclose(rot.quat_to_matrix_fast(3.0 * q), rot.quat_to_matrix(q), atol=1e-14)
+    pu, qu = p / np.linalg.norm(p, axis=-1, keepdims=True), q / np.linalg.norm(q, axis=-1)[:, None]
+    np.testing.assert_allclose(rot.boxplus_fast(qu, 0.3 * w), rot.boxplus(qu, 0.3 * w), atol=1e-15)
+    np.testing.assert_allclose(rot.boxminus_fast(pu, qu), rot.boxminus(pu, qu), atol=1e-12)

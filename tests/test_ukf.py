@@ -1,6 +1,6 @@
 """Kabir 2025 UKF (``ukf``) and its multiplicative variant (``ukf-mult``): the k1, k2 Euler
-equations against the rigid-body truth, the fast algebra against the rotations module, the
-covariance map against a numerical Jacobian, tuning errors, and short seeded runs on the
+equations against the rigid-body truth (its fast quaternion algebra is tested in
+tests/test_rotations.py), the covariance map against a numerical Jacobian, tuning errors, and short seeded runs on the
 kabir2025 scenario (convergence, NEES, occlusion, pseudo-measurements, gate, batch).
 """
 
@@ -98,13 +98,6 @@ def test_rk4_propagation_follows_the_torque_free_truth():
     assert rot.quat_angle(rot.quat_multiply(q, rot.quat_conjugate(q_true[-1]))) < 1e-6
 
 
-@given(quat, quat, vec3)
-def test_fast_algebra_equals_the_rotations_module(p, q, w):
-    np.testing.assert_allclose(U._qmul(p, q), rot.quat_multiply(p, q), atol=1e-15)
-    np.testing.assert_allclose(U._quat_rate(q, w), rot.quat_derivative(q, w), atol=1e-15)
-    np.testing.assert_allclose(U._rotation_matrix(3.0 * q), rot.quat_to_matrix(q), atol=1e-14)
-
-
 @given(quat, arrays(np.float64, 14, elements=st.floats(-1.0, 1.0)), vec3)
 def test_state_boxplus_matches_the_layout(q, v, dth):
     lay = U.layout(3)
@@ -162,6 +155,27 @@ def test_paper_tuning_per_frequency_and_bad_input():
         U.parse_tuning({"p0_k_var": -1.0})
     with pytest.raises(InputError, match="inertially fixed chaser"):
         U.geometry(load_scenario("hu2024"), np.zeros(2))
+
+
+def test_projection_noise_defaults_are_named_rules():
+    """The tuning shows the rules it applies ('sensor', 'sigma_p'); null (the former default)
+    means the rule too; a number overrides it."""
+    tun = U.KabirTuning()
+    assert (tun.sigma_p_rad, tun.sigma_d_rad) == ("sensor", "sigma_p")
+    assert U.parse_tuning({"sigma_p_rad": None, "sigma_d_rad": None}) == tun
+    meas = dataclasses.make_dataclass("M", ["noise_px", "rig"])(
+        0.5, dataclasses.make_dataclass("Rig", ["left"])(
+            dataclasses.make_dataclass("Cam", ["focal_px"])(1000.0)
+        )
+    )  # fmt: skip
+    assert U.projection_sigmas(tun, meas) == (5e-4, 5e-4)
+    assert U.projection_sigmas(U.parse_tuning({"sigma_d_rad": 2e-4}), meas) == (5e-4, 2e-4)
+    assert U.projection_sigmas(U.parse_tuning({"sigma_p_rad": 1e-5}), meas) == (1e-5, 1e-5)
+    for bad in (0.0, -1e-5, "senor", True):
+        with pytest.raises(InputError, match="estimator.tuning.sigma_p_rad: .*'sensor'"):
+            U.parse_tuning({"sigma_p_rad": bad})
+    with pytest.raises(InputError, match="sigma_p_rad"):
+        U.projection_sigmas(tun, dataclasses.replace(meas, noise_px=0.0))
 
 
 def test_registered_with_needs_and_description():

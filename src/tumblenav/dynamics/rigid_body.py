@@ -32,7 +32,9 @@ from tumblenav.rotations import exp_quat, quat_multiply, quat_to_matrix
 Array = NDArray[np.float64]
 
 __all__ = [
+    "euler_coefficients",
     "euler_rhs",
+    "euler_rhs_coefficients",
     "jacobi_omega",
     "polhode_period",
     "propagate_attitude",
@@ -167,6 +169,27 @@ def euler_rhs(omega_T: ArrayLike, inertia: ArrayLike) -> Array:
     h = w @ J.T  # I w for stacks
     torque = -np.cross(w, h)
     return np.linalg.solve(J, torque[..., None])[..., 0]
+
+
+def euler_coefficients(moments: ArrayLike) -> Array:
+    """``c = ((I2 - I3)/I1, (I3 - I1)/I2, (I1 - I2)/I3)`` of :func:`euler_rhs_coefficients`
+    from principal moments (..., 3) (kg m^2; only their ratios matter)."""
+    J = np.asarray(moments, dtype=float)
+    i1, i2, i3 = J[..., 0], J[..., 1], J[..., 2]
+    return np.stack([(i2 - i3) / i1, (i3 - i1) / i2, (i1 - i2) / i3], axis=-1)
+
+
+def euler_rhs_coefficients(omega_T: ArrayLike, c: ArrayLike) -> Array:
+    """Torque-free Euler equations in principal axes written with their coefficients,
+    ``dw/dt = c * [wy wz, wx wz, wx wy]`` (rad/s^2), stacks (..., 3).
+
+    ``c = ((I2 - I3)/I1, (I3 - I1)/I2, (I1 - I2)/I3)`` (:func:`euler_coefficients`): the form
+    in which the filters estimate the inertia, Hu 2024 eq. 21-22 (``c = p``) and Kabir 2025
+    eq. 8 (``c`` from ``k1, k2``).  Compiled twin inside
+    :func:`tumblenav.dynamics.compiled.rk4_attitude`.
+    """
+    w = np.asarray(omega_T, dtype=float)
+    return np.asarray(c, dtype=float) * w[..., [1, 0, 0]] * w[..., [2, 2, 1]]
 
 
 def propagate_attitude(

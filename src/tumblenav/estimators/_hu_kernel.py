@@ -12,9 +12,10 @@ Covered: ``dpacf_measurement: attitude`` without the innovation gate (the defaul
 ekf-dpacf and ekf-baseline. The other options run on the numpy path. ``tests/test_ekf_dpacf.py``
 checks that both paths give the same states, covariances, NIS and NEES.
 
-State layout (fixed by :func:`tumblenav.estimators.ekf_dpacf.layout`): nominal
+State layout (:func:`tumblenav.estimators.ekf_dpacf.layout`): nominal
 ``[q(4), w(3), p(3), r(3), v(3), f(3N)]``, error ``[dtheta(3), dw(3), dp(3), dr(3), dv(3),
-df(3N)]``.
+df(3N)]``; the offsets below are read from it. The quaternion algebra is
+:mod:`tumblenav.rotations_compiled`'s, the attitude RK4 :mod:`tumblenav.dynamics.compiled`'s.
 """
 
 from __future__ import annotations
@@ -24,85 +25,42 @@ import math
 import numpy as np
 from numba import njit
 
-from tumblenav.frontends._points_kernel import _qmul, matrix_to_quat  # shared
+from tumblenav.dynamics.compiled import rk4_attitude
+from tumblenav.estimators.ekf_dpacf import layout
+from tumblenav.rotations_compiled import (
+    boxminus,
+    boxplus,
+    exp_quat,
+    matrix_to_quat,
+    quat_multiply,
+    quat_to_matrix,
+)
 
 # Floating-point licence for the compiler: reassociation and fused multiply-add let it
 # vectorise the sums; NaN and inf semantics are kept (the divergence checks rely on them).
+# The inlined primitives of rotations_compiled and dynamics.compiled run under it too.
 _FM = {"reassoc", "contract", "arcp", "nsz"}
-# error-state offsets
-_SA, _SW, _SP, _SR, _SV, _SF = 0, 3, 6, 9, 12, 15
-# nominal-state offsets
-_NQ, _NW, _NP, _NR, _NV, _NF = 0, 4, 7, 10, 13, 16
 
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _qmat(q, R):
-    """``rotations.quat_to_matrix`` (normalises)."""
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    R[0, 0] = 1 - 2 * (yy + zz)
-    R[0, 1] = 2 * (xy - wz)
-    R[0, 2] = 2 * (xz + wy)
-    R[1, 0] = 2 * (xy + wz)
-    R[1, 1] = 1 - 2 * (xx + zz)
-    R[1, 2] = 2 * (yz - wx)
-    R[2, 0] = 2 * (xz - wy)
-    R[2, 1] = 2 * (yz + wx)
-    R[2, 2] = 1 - 2 * (xx + yy)
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _exp_quat(phi, out):
-    """``rotations.exp_quat``."""
-    ang = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    if ang < 1e-8:
-        k = 0.5 - ang * ang / 48.0
-    else:
-        k = math.sin(0.5 * ang) / ang
-    out[0] = k * phi[0]
-    out[1] = k * phi[1]
-    out[2] = k * phi[2]
-    out[3] = math.cos(0.5 * ang)
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _log_quat(q, out):
-    """``rotations.log_quat`` (normalises, scalar part made non-negative)."""
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    sg = -1.0 if q[3] / n < 0.0 else 1.0
-    vx, vy, vz, w = sg * q[0] / n, sg * q[1] / n, sg * q[2] / n, sg * q[3] / n
-    s = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if s < 1e-8:
-        k = 2.0 / w
-    else:
-        k = 2.0 * math.atan2(s, w) / s
-    out[0] = k * vx
-    out[1] = k * vy
-    out[2] = k * vz
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _boxminus_q(q, q_hat, out):
-    """``rotations.boxminus``: log(q (x) conj(q_hat))."""
-    c = np.empty(4)
-    c[0], c[1], c[2], c[3] = -q_hat[0], -q_hat[1], -q_hat[2], q_hat[3]
-    m = np.empty(4)
-    _qmul(q, c, m)
-    _log_quat(m, out)
+# Block offsets, read once from ekf_dpacf's StateLayout (numba cannot call it: plain ints,
+# frozen into the compiled code). Error state:
+_LAYOUT = layout(0)
+_BLOCKS = ("attitude", "rate", "inertia", "position", "velocity", "features")
+_SA, _SW, _SP, _SR, _SV, _SF = (_LAYOUT.err(b).start for b in _BLOCKS)
+# nominal state:
+_NQ, _NW, _NP, _NR, _NV, _NF = (_LAYOUT.nom(b).start for b in _BLOCKS)
+# The loops below are written for this order (the rotation's 9 error states, then [r, v],
+# then the features; a nominal index is its error index + 1 after the quaternion).
+_SHIFT = _NW - _SW
+if (_SA, _SW, _SP, _SR, _SV, _SF) != (0, 3, 6, 9, 12, 15) or _SHIFT != 1 or _NV != _NR + 3:
+    raise ImportError("_hu_kernel: ekf_dpacf.layout changed; the kernel's loops need updating")
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _boxplus(x, dx):
     """``StateLayout.boxplus`` for this layout, in place: q <- exp(dtheta) (x) q."""
-    e = np.empty(4)
-    _exp_quat(dx[0:3], e)
-    q = x[0:4].copy()
-    _qmul(e, q, x[0:4])
-    for i in range(3, dx.shape[0]):
-        x[i + 1] += dx[i]
+    boxplus(x[_NQ : _NQ + 4], dx[_SA : _SA + 3], x[_NQ : _NQ + 4])
+    for i in range(_SW, dx.shape[0]):
+        x[i + _SHIFT] += dx[i]
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -144,37 +102,11 @@ def _inv3(S, out):
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _rk4(x, dt):
     """``ekf_dpacf.propagate_rotation``: RK4 of q and omega (Hu 2024 eq. 2, 21), in place."""
-    q0 = x[_NQ : _NQ + 4].copy()
-    w0 = x[_NW : _NW + 3].copy()
-    px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
-    kq = np.zeros((4, 4))
-    kw = np.zeros((4, 3))
-    qs = q0.copy()
-    ws = w0.copy()
-    w4 = np.zeros(4)
-    dq = np.empty(4)
-    for s in range(4):
-        if s > 0:
-            h = dt if s == 3 else 0.5 * dt
-            for i in range(4):
-                qs[i] = q0[i] + h * kq[s - 1, i]
-            for i in range(3):
-                ws[i] = w0[i] + h * kw[s - 1, i]
-        w4[0], w4[1], w4[2] = ws[0], ws[1], ws[2]
-        _qmul(w4, qs, dq)  # dq/dt = -1/2 [w; 0] (x) q
-        for i in range(4):
-            kq[s, i] = -0.5 * dq[i]
-        kw[s, 0] = px * ws[1] * ws[2]  # Hu 2024 eq. 21-22
-        kw[s, 1] = py * ws[0] * ws[2]
-        kw[s, 2] = pz * ws[0] * ws[1]
     qn = np.empty(4)
-    for i in range(4):
-        qn[i] = q0[i] + dt / 6 * (kq[0, i] + 2 * kq[1, i] + 2 * kq[2, i] + kq[3, i])
+    rk4_attitude(x[_NQ : _NQ + 4], x[_NW : _NW + 3], x[_NP : _NP + 3], dt, qn, x[_NW : _NW + 3])
     nrm = math.sqrt(qn[0] ** 2 + qn[1] ** 2 + qn[2] ** 2 + qn[3] ** 2)
     for i in range(4):
         x[_NQ + i] = qn[i] / nrm
-    for i in range(3):
-        x[_NW + i] = w0[i] + dt / 6 * (kw[0, i] + 2 * kw[1, i] + 2 * kw[2, i] + kw[3, i])
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -328,11 +260,11 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
     dof = 0
     # delta = x_lin boxminus x (zero unless iterating)
     dl = np.zeros(d)
-    _boxminus_q(x_lin[_NQ : _NQ + 4], x[_NQ : _NQ + 4], dl[0:3])
-    for i in range(3, d):
-        dl[i] = x_lin[i + 1] - x[i + 1]
+    boxminus(x_lin[_NQ : _NQ + 4], x[_NQ : _NQ + 4], dl[_SA : _SA + 3])
+    for i in range(_SW, d):
+        dl[i] = x_lin[i + _SHIFT] - x[i + _SHIFT]
     Rq = np.empty((3, 3))
-    _qmat(x_lin[_NQ : _NQ + 4], Rq)
+    quat_to_matrix(x_lin[_NQ : _NQ + 4], Rq)
     R_LT = _mm(R_LI[k], Rq.T.copy())
     HP = np.empty((3, d))
     S = np.empty((3, 3))
@@ -348,7 +280,7 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
                     HP[a, j] = P[_SA + a, j]
                 for c in range(3):
                     S[a, c] = HP[a, _SA + c] + R0[a, c]
-            _boxminus_q(q_meas[k], x_lin[_NQ : _NQ + 4], nu)
+            boxminus(q_meas[k], x_lin[_NQ : _NQ + 4], nu)
             for a in range(3):
                 nu[a] += dl[_SA + a]
             nis += _absorb(P, dx, HP, S, nu)
@@ -471,8 +403,8 @@ def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need, f_first):
             return votes, False  # no measurement: the streak is kept
     Re = np.empty((3, 3))
     Rm = np.empty((3, 3))
-    _qmat(x[_NQ : _NQ + 4], Re)
-    _qmat(q_meas, Rm)
+    quat_to_matrix(x[_NQ : _NQ + 4], Re)
+    quat_to_matrix(q_meas, Rm)
     D = _mm(Rm, Re.T.copy())
     best, which = 1e300, 0
     for f in range(3):
@@ -497,7 +429,7 @@ def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need, f_first):
         for i in range(N):
             sg[_SF + 3 * i + a] = fa
     q = x[_NQ : _NQ + 4].copy()
-    _qmul(qflips[which], q, x[_NQ : _NQ + 4])
+    quat_multiply(qflips[which], q, x[_NQ : _NQ + 4])
     for a in range(3):
         fa = flips[which, a, a]
         x[_NW + a] *= fa
@@ -518,7 +450,7 @@ def _turn(x, P, F, N, f_first):
     d = P.shape[0]
     qF = matrix_to_quat(F.reshape(1, 3, 3))[0]
     q = x[_NQ : _NQ + 4].copy()
-    _qmul(qF, q, x[_NQ : _NQ + 4])
+    quat_multiply(qF, q, x[_NQ : _NQ + 4])
     v = np.empty(3)
     nb = 2 + N
     for blk in range(nb):
@@ -582,8 +514,8 @@ def _turn_points(x, mu, S, N, D):
         sg = r3 if sp < 3 else -r3
         for a in range(3):
             u[a] = mu[a] + sg * L[a, sp % 3]
-        _exp_quat(u, qu)
-        _qmat(qu, Ru)
+        exp_quat(u, qu)
+        quat_to_matrix(qu, Ru)
         for a in range(3):
             D[sp, 0, a] = u[a]
         for blk in range(1, 2 + N):

@@ -26,9 +26,11 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from tumblenav import rotations as rot
+from tumblenav.dynamics.integrators import discretise, rk4_step
+from tumblenav.dynamics.relative_orbit import cw_discrete
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
@@ -48,6 +50,19 @@ LAYOUT = StateLayout(
         Block("offset", "vector", 3),
     )
 )
+# The blocks' slices, taken once from LAYOUT: in the nominal state x ...
+_X_ATT, _X_RATE, _X_INERTIA, _X_POS, _X_VEL, _X_OFFSET = (
+    LAYOUT.nom(b) for b in ("attitude", "rate", "inertia", "position", "velocity", "offset")
+)
+# ... and in the error state / covariance
+_E_ATT, _E_RATE, _E_INERTIA, _E_POS, _E_VEL, _E_OFFSET = (
+    LAYOUT.err(b) for b in ("attitude", "rate", "inertia", "position", "velocity", "offset")
+)
+_X_TRANS = slice(_X_POS.start, _X_VEL.stop)  # [r, v]: the Hill model's state
+_E_TRANS = slice(_E_POS.start, _E_VEL.stop)
+_E_ROT = slice(_E_ATT.start, _E_INERTIA.stop)  # [dtheta, domega, dl]: rotational_F's block
+assert _X_POS.stop == _X_VEL.start and _E_POS.stop == _E_VEL.start
+assert _E_ATT.stop == _E_RATE.start and _E_RATE.stop == _E_INERTIA.start
 
 _E = np.zeros((5, 3, 3))  # dI/dl_j, I = [[1, l2, l3], [l2, l0, l4], [l3, l4, l1]]
 _E[0, 1, 1] = _E[1, 2, 2] = 1.0
@@ -60,20 +75,55 @@ class DepthTuning(BaseModel):
     """``estimator.tuning`` keys of ekf-depth (Yu 2019 Sec. 4 values as defaults)."""
 
     model_config = ConfigDict(extra="forbid")
-    P0_sigma_position_m: float = Field(1.0, gt=0)
-    P0_sigma_velocity_m_s: float = Field(0.1, gt=0)
-    P0_sigma_offset_m: float = Field(0.1, gt=0)
-    P0_sigma_attitude_rad: float = Field(0.1, gt=0)
-    P0_sigma_rate_rad_s: float = Field(0.01, gt=0)
-    P0_sigma_inertia: float | None = Field(
-        None,
+    P0_sigma_position_m: float = Field(
+        1.0, gt=0, description="initial 1-sigma of the position r (m; Yu 2019 Sec. 4)"
+    )
+    P0_sigma_velocity_m_s: float = Field(
+        0.1, gt=0, description="initial 1-sigma of the velocity v (m/s)"
+    )
+    P0_sigma_offset_m: float = Field(
+        0.1, gt=0, description="initial 1-sigma of the mass-centre offset b (m)"
+    )
+    P0_sigma_attitude_rad: float = Field(0.1, gt=0, description="initial attitude 1-sigma (rad)")
+    P0_sigma_rate_rad_s: float = Field(
+        0.01, gt=0, description="initial 1-sigma of the rate (rad/s); the filter starts at rate 0"
+    )
+    P0_sigma_inertia: float | Literal["inertia_init"] = Field(
+        "inertia_init",
+        description="initial 1-sigma of each inertia ratio; 'inertia_init': the one that "
+        "matches the initial guess, P0_sigma_inertia_given or P0_sigma_inertia_sphere",
+    )
+    P0_sigma_inertia_given: float = Field(
+        0.1,
         gt=0,
-        description="default: 0.1 (Yu 2019) with inertia_init 'given', 0.5 with 'sphere' "
-        "(a sphere is 0.3-0.5 off a typical satellite's ratios)",
+        description="with P0_sigma_inertia 'inertia_init' and inertia_init 'given' (Yu 2019 "
+        "Sec. 4: a guess near the truth)",
+    )
+    P0_sigma_inertia_sphere: float = Field(
+        0.5,
+        gt=0,
+        description="with P0_sigma_inertia 'inertia_init' and inertia_init 'sphere' (a sphere "
+        "is 0.3-0.5 off a typical satellite's ratios)",
     )
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
-    plane_threshold_m: float | None = Field(None, gt=0, description="default: 3 x range noise")
-    gate_probability: float = Field(0.9999, gt=0, lt=1)
+    plane_threshold_m: float | Literal["range_noise"] = Field(
+        "range_noise",
+        description="inlier distance of the RANSAC plane fits (m); 'range_noise': "
+        "plane_threshold_sigmas x the sensor's range_noise_m, at least plane_threshold_min_m",
+    )
+    plane_threshold_sigmas: float = Field(
+        3.0, gt=0, description="with plane_threshold_m 'range_noise': the threshold in sigmas"
+    )
+    plane_threshold_min_m: float = Field(
+        1e-3, gt=0, description="with plane_threshold_m 'range_noise': its floor (m)"
+    )
+    gate_probability: float = Field(
+        0.9999,
+        gt=0,
+        lt=1,
+        description="NIS gate per fix (6 dof); rejections are counted as gated_out (off "
+        "without the multi-solution fix)",
+    )
     inertia_init: Literal["sphere", "given"] = Field(
         "sphere",
         description="initial inertia ratios: 'sphere' (1, 1, 0, 0, 0: nothing known) or "
@@ -118,6 +168,22 @@ class DepthTuning(BaseModel):
         "(Yu 2019 eq. 21-25); false reproduces the paper's Fig. 9 (180-degree jumps)",
     )
 
+    @field_validator("P0_sigma_inertia", "plane_threshold_m", mode="before")
+    @classmethod
+    def _number_or_rule(cls, v: Any, info: ValidationInfo) -> Any:
+        """A positive number, or the rule named by the default (``null``, the former default,
+        means the rule too)."""
+        rule = cls.model_fields[info.field_name].default
+        if v is None or v == rule:
+            return rule
+        try:
+            number = float("nan") if isinstance(v, bool) else float(v)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if not number > 0:
+            raise ValueError(f"a positive number or '{rule}', got {v!r}")
+        return number
+
 
 def inertia_matrix(l: Array) -> Array:
     """Yu 2019 eq. 29, normalised by Ixx."""
@@ -143,19 +209,19 @@ def rotational_F(w: Array, l: Array) -> Array:
     I = inertia_matrix(l)
     Iinv = np.linalg.inv(I)
     wdot = Iinv @ (-np.cross(w, I @ w))
-    F = np.zeros((11, 11))
-    F[0:3, 0:3] = -rot.skew(w)
-    F[0:3, 3:6] = -np.eye(3)
-    F[3:6, 3:6] = Iinv @ (rot.skew(I @ w) - rot.skew(w) @ I)
+    F = np.zeros((_E_ROT.stop, _E_ROT.stop))
+    F[_E_ATT, _E_ATT] = -rot.skew(w)
+    F[_E_ATT, _E_RATE] = -np.eye(3)
+    F[_E_RATE, _E_RATE] = Iinv @ (rot.skew(I @ w) - rot.skew(w) @ I)
     for j in range(5):
-        F[3:6, 6 + j] = Iinv @ (-np.cross(w, _E[j] @ w) - _E[j] @ wdot)
+        F[_E_RATE, _E_INERTIA.start + j] = Iinv @ (-np.cross(w, _E[j] @ w) - _E[j] @ wdot)
     return F
 
 
 def _inertia_columns(w: Array, l: Array) -> Array:
     """(3, 5) ``d omega' / d l_j`` of Yu 2019 eq. 28 at rate ``w`` (the columns of
     :func:`rotational_F` for the ratios)."""
-    return rotational_F(w, l)[3:6, 6:11]
+    return rotational_F(w, l)[_E_RATE, _E_INERTIA]
 
 
 def unexcited_ratios(w: Array, l: Array, P_w: Array, k: float = 4.0) -> NDArray[np.bool_]:
@@ -178,51 +244,46 @@ def unexcited_ratios(w: Array, l: Array, P_w: Array, k: float = 4.0) -> NDArray[
 
 
 def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Array, Array]:
-    from tumblenav.estimators.ekf_dpacf import _translation_discrete, discretise
-
-    q, w, l = x[0:4], x[4:7], x[7:12]
+    """Predict over ``dt``: RK4 of the attitude and rate (Yu 2019 eq. 28 with the quaternion
+    kinematics), the Hill model (eq. 26-27) for ``[r, v]``, and ``P`` through the discretised
+    error dynamics (series of Hu 2024 eq. 38-39)."""
+    q, w, l = x[_X_ATT], x[_X_RATE], x[_X_INERTIA]
 
     def f(q_, w_):
         return rot.quat_derivative(q_, w_), euler_full(w_, l)
 
-    k1 = f(q, w)
-    k2 = f(q + dt / 2 * k1[0], w + dt / 2 * k1[1])
-    k3 = f(q + dt / 2 * k2[0], w + dt / 2 * k2[1])
-    k4 = f(q + dt * k3[0], w + dt * k3[1])
+    q_new, w_new = rk4_step(f, (q, w), dt)
     x = x.copy()
-    x[0:4] = q + dt / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-    x[0:4] /= np.linalg.norm(x[0:4])
-    x[4:7] = w + dt / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    x[_X_ATT] = q_new / np.linalg.norm(q_new)
+    x[_X_RATE] = w_new
     Phr, Qr = discretise(rotational_F(w, l), _Qc_rot(q_c), dt)
-    Pht, Qt = _translation_discrete(n, q_c, dt)
-    x[12:18] = Pht @ x[12:18]
-    Phi = np.eye(20)
-    Phi[:11, :11] = Phr
-    Phi[11:17, 11:17] = Pht
-    Qk = np.zeros((20, 20))
-    Qk[:11, :11] = Qr
-    Qk[11:17, 11:17] = Qt
+    Pht, Qt = cw_discrete(n, q_c, dt)
+    x[_X_TRANS] = Pht @ x[_X_TRANS]
+    Phi = np.eye(LAYOUT.dim)
+    Phi[_E_ROT, _E_ROT] = Phr
+    Phi[_E_TRANS, _E_TRANS] = Pht
+    Qk = np.zeros((LAYOUT.dim, LAYOUT.dim))
+    Qk[_E_ROT, _E_ROT] = Qr
+    Qk[_E_TRANS, _E_TRANS] = Qt
     return x, Phi @ P @ Phi.T + Qk
 
 
 def _Qc_rot(q_c: float) -> Array:
-    Q = np.zeros((11, 11))
-    Q[3:6, 3:6] = q_c * np.eye(3)  # Yu 2019: w2 = disturbing torque / Ixx
+    Q = np.zeros((_E_ROT.stop, _E_ROT.stop))
+    Q[_E_RATE, _E_RATE] = q_c * np.eye(3)  # Yu 2019: w2 = disturbing torque / Ixx
     return Q
 
 
 def _P0(tun: DepthTuning) -> Array:
     """Yu 2019 Sec. 4 initial covariance."""
-    return np.diag(
-        np.r_[
-            np.full(3, tun.P0_sigma_attitude_rad**2),
-            np.full(3, tun.P0_sigma_rate_rad_s**2),
-            np.full(5, _sigma_inertia(tun) ** 2),
-            np.full(3, tun.P0_sigma_position_m**2),
-            np.full(3, tun.P0_sigma_velocity_m_s**2),
-            np.full(3, tun.P0_sigma_offset_m**2),
-        ]
-    )
+    sigma = np.empty(LAYOUT.dim)
+    sigma[_E_ATT] = tun.P0_sigma_attitude_rad
+    sigma[_E_RATE] = tun.P0_sigma_rate_rad_s
+    sigma[_E_INERTIA] = _sigma_inertia(tun)
+    sigma[_E_POS] = tun.P0_sigma_position_m
+    sigma[_E_VEL] = tun.P0_sigma_velocity_m_s
+    sigma[_E_OFFSET] = tun.P0_sigma_offset_m
+    return np.diag(sigma**2)
 
 
 def _initial_inertia(tun: DepthTuning, rng: np.random.Generator) -> Array:
@@ -239,10 +300,20 @@ def _initial_inertia(tun: DepthTuning, rng: np.random.Generator) -> Array:
 
 
 def _sigma_inertia(tun: DepthTuning) -> float:
-    """P0 sigma of the ratios: as given, else one that matches the initial guess."""
-    if tun.P0_sigma_inertia is not None:
+    """P0 sigma of the ratios: as given, else the one that matches the initial guess."""
+    if tun.P0_sigma_inertia != "inertia_init":
         return tun.P0_sigma_inertia
-    return 0.1 if tun.inertia_init == "given" else 0.5
+    if tun.inertia_init == "given":
+        return tun.P0_sigma_inertia_given
+    return tun.P0_sigma_inertia_sphere
+
+
+def plane_threshold(tun: DepthTuning, range_noise_m: float) -> float:
+    """Inlier distance (m) of the RANSAC plane fits: as given, else ``plane_threshold_sigmas``
+    times the sensor's range noise, at least ``plane_threshold_min_m``."""
+    if tun.plane_threshold_m != "range_noise":
+        return tun.plane_threshold_m
+    return max(tun.plane_threshold_sigmas * range_noise_m, tun.plane_threshold_min_m)
 
 
 def fix_covariance(fx, sigma: float) -> tuple[Array, Array]:
@@ -271,16 +342,16 @@ def _only_model_symmetric(fix, syms: list[Array]) -> bool:
 
 
 def measurement(x: Array, R_LI: Array) -> tuple[Array, Array]:
-    """Model origin in L, ``p_ML = r - R_LT b``, and its Jacobian (3, 20)."""
-    R_LT = R_LI @ rot.quat_to_matrix(x[0:4]).T
-    b = x[18:21]
-    y = x[12:15] - R_LT @ b
-    H = np.zeros((3, 20))
+    """Model origin in L, ``p_ML = r - R_LT b``, and its Jacobian (3, LAYOUT.dim = 20)."""
+    R_LT = R_LI @ rot.quat_to_matrix(x[_X_ATT]).T
+    b = x[_X_OFFSET]
+    y = x[_X_POS] - R_LT @ b
+    H = np.zeros((3, LAYOUT.dim))
     # R_LT = R_LI R_TI^T with R_TI = Exp(dtheta) R_hat: R_LT b ~ R_hat_LT (b + [b x] dtheta),
     # so dy/dtheta = -R_LT [b x]
-    H[:, 0:3] = -R_LT @ rot.skew(b)
-    H[:, 11:14] = np.eye(3)
-    H[:, 17:20] = -R_LT
+    H[:, _E_ATT] = -R_LT @ rot.skew(b)
+    H[:, _E_POS] = np.eye(3)
+    H[:, _E_OFFSET] = -R_LT
     return y, H
 
 
@@ -312,14 +383,14 @@ class DepthEKF:
             )
         model = from_config(scenario.target_model)
         sigma = scenario.sensor.range_noise_m
-        thr = tun.plane_threshold_m or max(3 * sigma, 1e-3)
+        thr = plane_threshold(tun, sigma)
         n_orb = scenario.chaser.orbit.mean_motion_rad_s if scenario.chaser.orbit else 0.0
         R_CL = rot.quat_to_matrix(meas.q_CL)
         R_LI = rot.quat_to_matrix(meas.q_LI)
         t = meas.t
         n = len(t)
         out_x = np.full((n, LAYOUT.nominal_dim), np.nan)
-        out_P = np.full((n, 20, 20), np.nan)
+        out_P = np.full((n, LAYOUT.dim, LAYOUT.dim), np.nan)
         nis = np.full(n, np.nan)
         nis_dof = np.zeros(n)
         skipped: dict[str, int] = {
@@ -337,7 +408,7 @@ class DepthEKF:
             R_LS = R_CL[k].T
             R_SM_pred = None
             if x is not None:
-                R_SM_pred = R_CL[k] @ R_LI[k] @ rot.quat_to_matrix(x[0:4]).T
+                R_SM_pred = R_CL[k] @ R_LI[k] @ rot.quat_to_matrix(x[_X_ATT]).T
             fixes, why = pose_fixes(
                 pts, model, thr, rng, sigma, R_SM_pred if tun.multi_solution_fix else None
             )
@@ -351,9 +422,9 @@ class DepthEKF:
             if x is None and fixes:  # Yu 2019 Sec. 4: start from the first observation
                 R_SM0, p0 = consistent_start(fixes)
                 x = np.zeros(LAYOUT.nominal_dim)
-                x[0:4] = rot.matrix_to_quat((R_LI[k].T @ R_LS @ R_SM0).T)
-                x[7:12] = _initial_inertia(tun, rng)
-                x[12:15] = R_LS @ p0
+                x[_X_ATT] = rot.matrix_to_quat((R_LI[k].T @ R_LS @ R_SM0).T)
+                x[_X_INERTIA] = _initial_inertia(tun, rng)
+                x[_X_POS] = R_LS @ p0
                 P = _P0(tun)
                 out_x[k], out_P[k] = x, P
                 continue
@@ -366,8 +437,10 @@ class DepthEKF:
                 R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)
                 R_TP = fx.R_MP if fx.R_MP is not None else np.eye(3)
                 y, Hp = measurement(x, R_LI[k])
-                H = np.vstack([np.eye(3, 20), Hp])
-                nu = np.r_[rot.boxminus(q_meas, x[0:4]), p_ML - y]
+                H_att = np.zeros((3, LAYOUT.dim))
+                H_att[:, _E_ATT] = np.eye(3)
+                H = np.vstack([H_att, Hp])
+                nu = np.r_[rot.boxminus(q_meas, x[_X_ATT]), p_ML - y]
                 R = np.zeros((6, 6))
                 R[:3, :3] = R_TP @ cov_att @ R_TP.T
                 R[3:, 3:] = R_LP @ cov_pos @ R_LP.T
@@ -384,15 +457,16 @@ class DepthEKF:
                     # Schmidt (consider) update for the ratios the motion does not excite: no
                     # gain, so no information from nothing; their covariance and its coupling to
                     # the rate stay, and the Joseph form below is exact for any gain
-                    K[6:11][unexcited_ratios(x[4:7], x[7:12], P[3:6, 3:6])] = 0.0
-                A = np.eye(20) - K @ H
+                    unexcited = unexcited_ratios(x[_X_RATE], x[_X_INERTIA], P[_E_RATE, _E_RATE])
+                    K[_E_INERTIA][unexcited] = 0.0
+                A = np.eye(LAYOUT.dim) - K @ H
                 P = A @ P @ A.T + K @ R @ K.T  # Joseph form
                 x_new = LAYOUT.boxplus(x, K @ nu)
-                if not physical_inertia(x_new[7:12]):
+                if not physical_inertia(x_new[_X_INERTIA]):
                     # a step that makes the inertia not positive definite would let the Euler
                     # equations explode: keep the ratios where they were, take the rest, and
                     # count it
-                    x_new[7:12] = x[7:12]
+                    x_new[_X_INERTIA] = x[_X_INERTIA]
                     skipped["nonphysical_inertia"] += 1
                 x = x_new
                 nis[k] = (nis[k] if np.isfinite(nis[k]) else 0.0) + d2

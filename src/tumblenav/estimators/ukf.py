@@ -76,10 +76,18 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+)
 from scipy import stats
 
 from tumblenav import rotations as rot
+from tumblenav.dynamics.integrators import rk4_step
+from tumblenav.dynamics.rigid_body import euler_rhs_coefficients
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
@@ -101,6 +109,7 @@ __all__ = [
     "measurement_model",
     "paper_tuning",
     "parse_tuning",
+    "projection_sigmas",
     "propagate_rotation",
     "run_ukf",
     "stereo_measurements",
@@ -167,20 +176,24 @@ class KabirTuning(BaseModel):
         [], description="given init: each feature's position in T, m (one [x, y, z] each)"
     )
     alpha: float = Field(0.1, gt=0, le=1, description="unscented spread (Sec. 3.2)")
-    beta: float = Field(2.0, ge=0)
-    kappa: float = 0.0
+    beta: float = Field(2.0, ge=0, description="unscented transform (Sec. 3.2)")
+    kappa: float = Field(0.0, description="unscented transform (Sec. 3.2)")
     p0_omega_var: float = Field(0.1225, gt=0, description="rad^2/s^2")
     p0_quat_var: float = Field(0.04, gt=0, description="per quaternion component")
-    p0_k_var: float = Field(0.01, gt=0)
+    p0_k_var: float = Field(0.01, gt=0, description="initial variance of each log-ratio k")
     p0_feature_var: float = Field(2.25, gt=0, description="m^2")
     q_omega_var: float = Field(2.5e-9, ge=0, description="rad^2/s^2 per step")
     q_quat_var: float = Field(4e-10, ge=0, description="per quaternion component per step")
     q_k_var: float = Field(3.6e-5, ge=0, description="per step")
     q_feature_var: float = Field(1e-6, ge=0, description="m^2 per step")
-    sigma_p_rad: float | None = Field(
-        None, gt=0, description="projection noise; default: the sensor's noise_px / focal_px"
+    sigma_p_rad: float | Literal["sensor"] = Field(
+        "sensor",
+        description="projection noise sigma_p (rad, Kabir 2025 eq. 24); 'sensor': the "
+        "measurements' noise_px / focal_px (left camera)",
     )
-    sigma_d_rad: float | None = Field(None, gt=0, description="disparity; default: sigma_p")
+    sigma_d_rad: float | Literal["sigma_p"] = Field(
+        "sigma_p", description="disparity noise (rad); 'sigma_p': the same as sigma_p_rad"
+    )
     sigma_flow_rad_s: float = Field(
         1e-5,
         gt=0,
@@ -198,6 +211,22 @@ class KabirTuning(BaseModel):
     gate_probability: float | None = Field(
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
+
+    @field_validator("sigma_p_rad", "sigma_d_rad", mode="before")
+    @classmethod
+    def _number_or_rule(cls, v: Any, info: ValidationInfo) -> Any:
+        """A positive number, or the rule named by the default (``null``, the former default,
+        means the rule too)."""
+        rule = cls.model_fields[info.field_name].default
+        if v is None or v == rule:
+            return rule
+        try:
+            number = float("nan") if isinstance(v, bool) else float(v)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if not number > 0:
+            raise ValueError(f"a positive number or '{rule}', got {v!r}")
+        return number
 
 
 def parse_tuning(raw: dict[str, Any] | None, model: type[KabirTuning] = KabirTuning) -> KabirTuning:
@@ -221,7 +250,9 @@ def paper_tuning(f_T_hz: float) -> dict[str, float]:
 
 
 def _euler_coefficients(k: Array) -> Array:
-    """``[e^-k1 (1 - e^k2), e^k2 - e^k1, e^-k2 (e^k1 - 1)]`` of :func:`euler_rhs_k`."""
+    """``[e^-k1 (1 - e^k2), e^k2 - e^k1, e^-k2 (e^k1 - 1)]`` of :func:`euler_rhs_k`: the
+    coefficients ``c`` of :func:`tumblenav.dynamics.rigid_body.euler_rhs_coefficients` for
+    ``I / I2 = diag(e^k1, 1, e^k2)``."""
     e1, e2 = np.exp(k[..., 0]), np.exp(k[..., 1])
     return np.stack([(1.0 - e2) / e1, e2 - e1, (e1 - 1.0) / e2], axis=-1)
 
@@ -235,20 +266,7 @@ def euler_rhs_k(omega_T: Array, k: Array) -> Array:
 
         wx' = e^-k1 (1 - e^k2) wy wz,  wy' = (e^k2 - e^k1) wx wz,  wz' = e^-k2 (e^k1 - 1) wx wy
     """
-    w = np.asarray(omega_T, dtype=float)
-    return _euler_coefficients(np.asarray(k, dtype=float)) * w[..., [1, 0, 0]] * w[..., [2, 2, 1]]
-
-
-# dq/dt = -1/2 [omega; 0] (x) q is bilinear in omega and q: its coefficients
-# _KIN[i, j, :] = quat_derivative(e_j, e_i), taken once from the rotations module so that the
-# convention is the module's, make the derivative two small matrix products per RK4 stage.
-_KIN = np.stack([rot.quat_derivative(np.eye(4), np.eye(3)[i]) for i in range(3)]).reshape(3, 16)
-
-
-def _quat_rate(q: Array, omega: Array) -> Array:
-    """:func:`tumblenav.rotations.quat_derivative` (``q`` (..., 4), ``omega`` (..., 3))."""
-    W = (omega @ _KIN).reshape(omega.shape[:-1] + (4, 4))  # [j, :] = derivative of e_j
-    return (q[..., None, :] @ W)[..., 0, :]
+    return euler_rhs_coefficients(omega_T, _euler_coefficients(np.asarray(k, dtype=float)))
 
 
 def propagate_rotation(omega_T: Array, q_TI: Array, k: Array, dt: float) -> tuple[Array, Array]:
@@ -261,18 +279,10 @@ def propagate_rotation(omega_T: Array, q_TI: Array, k: Array, dt: float) -> tupl
     c = _euler_coefficients(k)
 
     def f(w, q):
-        return c * w[..., [1, 0, 0]] * w[..., [2, 2, 1]], _quat_rate(q, w)
+        return euler_rhs_coefficients(w, c), rot.quat_derivative_fast(q, w)
 
-    h = 0.5 * dt
-    k1w, k1q = f(omega_T, q_TI)
-    k2w, k2q = f(omega_T + h * k1w, q_TI + h * k1q)
-    k3w, k3q = f(omega_T + h * k2w, q_TI + h * k2q)
-    k4w, k4q = f(omega_T + dt * k3w, q_TI + dt * k3q)
-    s = dt / 6.0
-    return (
-        omega_T + s * (k1w + 2.0 * (k2w + k3w) + k4w),
-        q_TI + s * (k1q + 2.0 * (k2q + k3q) + k4q),
-    )
+    w_new, q_new = rk4_step(f, (omega_T, q_TI), dt)
+    return w_new, q_new
 
 
 @dataclass(frozen=True)
@@ -372,34 +382,6 @@ def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
     )
 
 
-def _rotation_coefficients() -> Array:
-    """(16, 9) ``C`` with ``R(q) = (q q^T).ravel() @ C / |q|^2`` equal to
-    :func:`tumblenav.rotations.quat_to_matrix` (which is a quadratic form of the unit
-    quaternion): the symmetric bilinear form by polarisation of the module's own function."""
-    E = np.eye(4)
-    M = rot.quat_to_matrix
-    C = np.zeros((4, 4, 9))
-    for a in range(4):
-        for b in range(4):
-            # H(q) = |q|^2 M(q) is quadratic: C[a, b] = (H(e_a + e_b) - H(e_a) - H(e_b)) / 2,
-            # and C[a, a] = H(e_a); here |e_a + e_b|^2 = 2 for a != b
-            if a == b:
-                C[a, a] = M(E[a]).ravel()
-            else:
-                C[a, b] = (2.0 * M(E[a] + E[b]) - M(E[a]) - M(E[b])).ravel() / 2.0
-    return C.reshape(16, 9)
-
-
-_ROT = _rotation_coefficients()
-_SKEW = rot.skew(np.eye(3)).reshape(3, 9)  # skew(v) = (v @ _SKEW).reshape(3, 3) (linear in v)
-
-
-def _rotation_matrix(q: Array) -> Array:
-    """:func:`tumblenav.rotations.quat_to_matrix` for stacks of (not necessarily unit) q."""
-    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
-    return ((qq @ _ROT) / np.sum(q * q, axis=-1, keepdims=True)).reshape(q.shape[:-1] + (3, 3))
-
-
 def measurement_model(
     x: Array, R_CI: Array, rho0_C: Array, rho0_dot_C: Array, centres_x: Array
 ) -> Array:
@@ -408,11 +390,25 @@ def measurement_model(
     ``rho_i = rho0_C + R_CI R_IT p_i`` (eq. 4 in C), ``omega_C = R_CI R_IT omega_TI_T``; the
     quaternion need not be unit (it is normalised in the rotation matrix).
     """
-    R_CT = R_CI @ np.swapaxes(_rotation_matrix(x[..., 3:7]), -1, -2)
+    R_CT = R_CI @ np.swapaxes(rot.quat_to_matrix_fast(x[..., 3:7]), -1, -2)
     p = x[..., 9:].reshape(x.shape[:-1] + (-1, 3))
     rho = rho0_C[..., None, :] + p @ np.swapaxes(R_CT, -1, -2)
     omega_C = (R_CT @ x[..., 0:3, None])[..., 0]
     return proj.kabir_h(rho, rho0_C, omega_C, centres_x, rho0_dot_C)
+
+
+def projection_sigmas(tun: KabirTuning, meas: Any) -> tuple[float, float]:
+    """``(sigma_p, sigma_d)`` (rad) of Kabir 2025 eq. 24: as given in the tuning, or by its
+    rules (``'sensor'``: the measurements' ``noise_px / focal_px``; ``'sigma_p'``)."""
+    sp = tun.sigma_p_rad
+    if sp == "sensor":
+        sp = float(meas.noise_px) / float(meas.rig.left.focal_px)
+        if not sp > 0:
+            raise InputError(
+                "the sensor noise is zero or unknown: set estimator.tuning.sigma_p_rad"
+            )
+    sd = sp if tun.sigma_d_rad == "sigma_p" else tun.sigma_d_rad
+    return sp, sd
 
 
 def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[Array, Array]:
@@ -422,9 +418,8 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
     :func:`~tumblenav.frontends.projections.normalised` and the flow by
     :func:`~tumblenav.frontends.projections.finite_difference_rate` (Kabir 2025 eq. 27) of the
     measured projections (by default only where eq. 27 is fourth order, see ``flow_edges``);
-    NaN where not available.  Variances: ``sigma_p^2`` (default the
-    sensor's ``noise_px / focal_px``), ``sigma_d^2`` (default ``sigma_p^2``) and
-    ``sigma_flow^2`` (Kabir 2025 eq. 24-25, diagonal).
+    NaN where not available.  Variances: ``sigma_p^2``, ``sigma_d^2``
+    (:func:`projection_sigmas`) and ``sigma_flow^2`` (Kabir 2025 eq. 24-25, diagonal).
     """
     tun = tuning or KabirTuning()
     t = np.asarray(meas.t, dtype=float)
@@ -436,14 +431,7 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
     if tun.flow_edges == "drop":
         flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
     z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
-    sp = tun.sigma_p_rad
-    if sp is None:
-        sp = float(meas.noise_px) / float(meas.rig.left.focal_px)
-        if not sp > 0:
-            raise InputError(
-                "the sensor noise is zero or unknown: set estimator.tuning.sigma_p_rad"
-            )
-    sd = tun.sigma_d_rad or sp
+    sp, sd = projection_sigmas(tun, meas)
     var = np.array([sp**2] * 4 + [sd**2] + [tun.sigma_flow_rad_s**2] * 4)
     return z, np.broadcast_to(var, z.shape).copy()
 
@@ -573,32 +561,10 @@ def _sqrt_psd(P: Array) -> tuple[Array, NDArray[np.bool_]]:
     return L, repaired
 
 
-# The Hamilton product is bilinear: _QMUL[i, 4 j + k] = (e_i (x) e_j)_k, taken once from
-# rotations.quat_multiply (its convention), makes the product two small matrix products
-# (np.cross inside quat_multiply dominated the multiplicative filter's time).
-_QMUL = np.stack([rot.quat_multiply(np.eye(4)[i], np.eye(4)) for i in range(4)]).reshape(4, 16)
-
-
-def _qmul(p: Array, q: Array) -> Array:
-    """:func:`tumblenav.rotations.quat_multiply` ``p (x) q`` for stacks (broadcasts)."""
-    W = (p @ _QMUL).reshape(p.shape[:-1] + (4, 4))
-    return (q[..., None, :] @ W)[..., 0, :]
-
-
-def _q_boxplus(q_hat: Array, dtheta: Array) -> Array:
-    """:func:`tumblenav.rotations.boxplus`."""
-    return _qmul(rot.exp_quat(dtheta), q_hat)
-
-
-def _q_boxminus(q: Array, q_hat: Array) -> Array:
-    """:func:`tumblenav.rotations.boxminus`."""
-    return rot.log_quat(_qmul(q, rot.quat_conjugate(q_hat)))
-
-
 def _boxplus(x: Array, dx: Array) -> Array:
     """``x [+] dx`` for this layout (rate, attitude, inertia, features): the attitude by
     :func:`tumblenav.rotations.boxplus`, the rest by addition; broadcasts."""
-    q = _q_boxplus(x[..., 3:7], dx[..., 3:6])
+    q = rot.boxplus_fast(x[..., 3:7], dx[..., 3:6])
     v = x[..., 0:3] + dx[..., 0:3]
     if q.shape[:-1] != v.shape[:-1]:
         q = np.broadcast_to(q, v.shape[:-1] + (4,))
@@ -610,7 +576,7 @@ def quat_cov_map(q_hat: Array) -> Array:
     the first-order form of :func:`tumblenav.rotations.boxminus` (its null space is the
     quaternion's norm direction)."""
     qh = q_hat / np.linalg.norm(q_hat, axis=-1, keepdims=True)
-    E = _qmul(np.eye(4), rot.quat_conjugate(qh)[..., None, :])  # (..., 4 j, 4)
+    E = rot.quat_multiply_fast(np.eye(4), rot.quat_conjugate(qh)[..., None, :])  # (..., 4 j, 4)
     return 2.0 * np.swapaxes(E[..., :3], -1, -2)
 
 
@@ -704,9 +670,9 @@ def _filter(
                         # about the propagated centre point, and their deviations e_i - e_bar
                         # (BCH: exact to O(|e_i| |e_bar|), e_bar being second order in the spread)
                         qc = q[:, 0]
-                        e = _q_boxminus(q, qc[:, None, :])
+                        e = rot.boxminus_fast(q, qc[:, None, :])
                         e_bar = Wm @ e
-                        x[:, 3:7] = _q_boxplus(qc, e_bar)
+                        x[:, 3:7] = rot.boxplus_fast(qc, e_bar)
                         D = np.concatenate(
                             [
                                 w - x[:, None, 0:3],
@@ -751,7 +717,7 @@ def _filter(
                         # reset of the error to the new nominal: theta' = theta - dtheta +
                         # 1/2 [dtheta x] theta (BCH), so P <- G P G^T, G = I + 1/2 [dtheta x]
                         G = np.broadcast_to(np.eye(d), P.shape).copy()
-                        G[:, 3:6, 3:6] += 0.5 * (dx[:, 3:6] @ _SKEW).reshape(B, 3, 3)
+                        G[:, 3:6, 3:6] += 0.5 * rot.skew(dx[:, 3:6])
                         P = G @ P @ np.swapaxes(G, -1, -2)
                     nis[:, k] = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
                     nis_dof[:, k] = rows.sum(1)

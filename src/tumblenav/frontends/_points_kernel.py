@@ -14,6 +14,21 @@ import math
 import numpy as np
 from numba import njit
 
+# the compiled quaternion algebra (matrix_to_quat is also this module's, for stereo_points)
+from tumblenav.rotations_compiled import log_quat, matrix_to_quat, quat_multiply
+
+__all__ = [
+    "align_rigid",
+    "joint_normal_equations",
+    "kabsch_moments",
+    "kabsch_rotation",
+    "matrix_to_quat",
+    "normal_equations_at",
+    "rate_fit",
+    "triangulate_parallel_rotated",
+    "whiten_rows",
+]
+
 
 @njit(cache=True, error_model="numpy")
 def triangulate_parallel_rotated(uv, obs, focal, baseline, cu, cv, sigma, R_LC):
@@ -147,17 +162,6 @@ def kabsch_moments(p, g, w):
     return H, pc, gc, info, cnt, sw
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _qmul(a, b, out):
-    """Hamilton product a (x) b of [x, y, z, w] quaternions (``rotations.quat_multiply``)."""
-    ax, ay, az, aw = a[0], a[1], a[2], a[3]
-    bx, by, bz, bw = b[0], b[1], b[2], b[3]
-    out[0] = aw * bx + bw * ax + (ay * bz - az * by)
-    out[1] = aw * by + bw * ay + (az * bx - ax * bz)
-    out[2] = aw * bz + bw * az + (ax * by - ay * bx)
-    out[3] = aw * bw - (ax * bx + ay * by + az * bz)
-
-
 @njit(cache=True, error_model="numpy")
 def rate_fit(q, valid, h, dt):
     """``stereo_points.rates_and_covariance`` after its quaternion conversion: the symmetric
@@ -180,6 +184,7 @@ def rate_fit(q, valid, h, dt):
     m = np.empty(4)
     num = np.empty(3)
     num3 = np.empty(3)
+    lg = np.empty(3)
     for b in range(B):
         for k in range(n):
             good = valid[b, k]
@@ -196,22 +201,13 @@ def rate_fit(q, valid, h, dt):
             num3[:] = 0.0
             for j in range(1, h + 1):
                 for s in (1, -1):
-                    _qmul(q[b, k + s * j], qc, m)
-                    # rotations.log_quat: normalise, non-negative scalar part
-                    nrm = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3])
-                    sg = -1.0 if m[3] / nrm < 0.0 else 1.0
-                    vx, vy, vz, ww = (sg * m[0] / nrm, sg * m[1] / nrm, sg * m[2] / nrm,
-                                      sg * m[3] / nrm)  # fmt: skip
-                    sv = math.sqrt(vx * vx + vy * vy + vz * vz)
-                    kk = 2.0 / ww if sv < 1e-8 else 2.0 * math.atan2(sv, ww) / sv
+                    quat_multiply(q[b, k + s * j], qc, m)
+                    log_quat(m, lg)
                     sj = s * j
-                    num[0] += sj * kk * vx
-                    num[1] += sj * kk * vy
-                    num[2] += sj * kk * vz
                     sj3 = sj * j * j
-                    num3[0] += sj3 * kk * vx
-                    num3[1] += sj3 * kk * vy
-                    num3[2] += sj3 * kk * vz
+                    for a in range(3):
+                        num[a] += sj * lg[a]
+                        num3[a] += sj3 * lg[a]
             for a in range(3):
                 omega[b, k, a] = -num[a] / (dt * s2)
                 if det > 0.0:  # h >= 2
@@ -271,41 +267,6 @@ def normal_equations_at(a, b, w, ok, delay, sel):
             bb[bi, si] = bbc
             cnt[bi, si] = cc
     return N, r, bb, cnt
-
-
-@njit(cache=True, error_model="numpy")
-def matrix_to_quat(R):
-    """``rotations.matrix_to_quat`` for stacks (M,3,3) of rotation matrices: Shepperd's method
-    (the largest of trace and diagonal picks the stable formula), normalised, scalar part
-    made non-negative. Unlike scipy it does not first project a non-orthogonal matrix onto
-    SO(3): use it only on products of rotation matrices."""
-    M = R.shape[0]
-    q = np.empty((M, 4))
-    for m in range(M):
-        r = R[m]
-        tr = r[0, 0] + r[1, 1] + r[2, 2]
-        big = max(tr, r[0, 0], r[1, 1], r[2, 2])
-        if big == tr:
-            w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
-            f = 0.25 / w
-            x, y, z = (r[2, 1] - r[1, 2]) * f, (r[0, 2] - r[2, 0]) * f, (r[1, 0] - r[0, 1]) * f
-        elif big == r[0, 0]:
-            x = 0.5 * math.sqrt(max(1.0 + 2 * r[0, 0] - tr, 0.0))
-            f = 0.25 / x
-            w, y, z = (r[2, 1] - r[1, 2]) * f, (r[0, 1] + r[1, 0]) * f, (r[0, 2] + r[2, 0]) * f
-        elif big == r[1, 1]:
-            y = 0.5 * math.sqrt(max(1.0 + 2 * r[1, 1] - tr, 0.0))
-            f = 0.25 / y
-            w, x, z = (r[0, 2] - r[2, 0]) * f, (r[0, 1] + r[1, 0]) * f, (r[1, 2] + r[2, 1]) * f
-        else:
-            z = 0.5 * math.sqrt(max(1.0 + 2 * r[2, 2] - tr, 0.0))
-            f = 0.25 / z
-            w, x, y = (r[1, 0] - r[0, 1]) * f, (r[0, 2] + r[2, 0]) * f, (r[1, 2] + r[2, 1]) * f
-        n = math.sqrt(x * x + y * y + z * z + w * w)
-        if w < 0:
-            n = -n
-        q[m, 0], q[m, 1], q[m, 2], q[m, 3] = x / n, y / n, z / n, w / n
-    return q
 
 
 @njit(cache=True, error_model="numpy")
