@@ -12,7 +12,12 @@ from pathlib import Path
 
 import tumblenav
 
-KERNEL_MODULES = ("estimators/_hu_kernel.py", "frontends/_points_kernel.py")
+KERNEL_MODULES = (
+    "estimators/_hu_kernel.py",
+    "frontends/_points_kernel.py",
+    "rotations_compiled.py",
+    "dynamics/compiled.py",
+)
 
 
 def kernels_compiled() -> bool:

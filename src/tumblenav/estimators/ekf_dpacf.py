@@ -32,7 +32,6 @@ vectorisation that makes a 2000-run campaign take seconds (benchmarks/hu2024_cam
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -42,6 +41,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import stats
 
 from tumblenav import rotations as rot
+from tumblenav.dynamics.integrators import discretise, rk4_step
+from tumblenav.dynamics.relative_orbit import cw_discrete, hill_matrix
+from tumblenav.dynamics.rigid_body import euler_rhs_coefficients
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import (
     Belief,
@@ -289,8 +291,9 @@ def parse_tuning(raw: dict[str, Any], use_dpacf: bool = True) -> HuTuning:
 
 
 def euler_ratios_rhs(w: Array, p: Array) -> Array:
-    """Hu 2024 eq. 21-22: ``omega' = K(omega) = [px wy wz, py wx wz, pz wx wy]``."""
-    return p * np.stack([w[..., 1] * w[..., 2], w[..., 0] * w[..., 2], w[..., 0] * w[..., 1]], -1)
+    """Hu 2024 eq. 21-22: ``omega' = K(omega) = [px wy wz, py wx wz, pz wx wy]``: the Euler
+    equations with coefficients ``p`` (:func:`tumblenav.dynamics.rigid_body.euler_rhs_coefficients`)."""
+    return euler_rhs_coefficients(w, p)
 
 
 def noise_gain(p: Array) -> Array:
@@ -333,10 +336,7 @@ def core_F(w: Array, p: Array, n_orbit: float, rotation_only: bool = False) -> A
     )
     if rotation_only:
         return F
-    F[..., 9:12, 12:15] = np.eye(3)
-    n2 = n_orbit**2
-    F[..., 12:15, 9:12] = np.diag([0.0, -n2, 3 * n2])  # E1, Hu eq. 5
-    F[..., 12:15, 12:15] = np.array([[0, 0, 2 * n_orbit], [0, 0, 0], [-2 * n_orbit, 0, 0]])  # E2
+    F[..., 9:15, 9:15] = hill_matrix(n_orbit)  # Hu 2024 eq. 4-5
     return F
 
 
@@ -349,41 +349,18 @@ def core_Qc(p: Array, sigma_r2: float, sigma_t2: float) -> Array:
     return Q
 
 
-def discretise(F: Array, Qc: Array, dt: float) -> tuple[Array, Array]:
-    """``Phi = exp(F dt)`` (Hu eq. 38) and ``Q_k`` (eq. 39) by truncated series."""
-    A = F * dt
-    A2 = A @ A
-    eye = np.eye(F.shape[-1])
-    Phi = eye + A + A2 / 2 + A2 @ A / 6 + A2 @ A2 / 24
-    FQ = F @ Qc
-    FQF = FQ @ np.swapaxes(F, -1, -2)
-    F2Q = F @ FQ
-    Qk = Qc * dt + (FQ + np.swapaxes(FQ, -1, -2)) * dt**2 / 2
-    Qk = Qk + (F2Q + 2 * FQF + np.swapaxes(F2Q, -1, -2)) * dt**3 / 6
-    return Phi, 0.5 * (Qk + np.swapaxes(Qk, -1, -2))
-
-
-@functools.lru_cache(maxsize=8)
 def _translation_discrete(n_orbit: float, sigma_t2: float, dt: float) -> tuple[Array, Array]:
-    """Phi and Q_k of the translational block (Hu 2024 eq. 4-5): constant for a given dt."""
-    F = core_F(np.zeros(3), np.zeros(3), n_orbit)[9:15, 9:15]
-    Qc = np.zeros((6, 6))
-    Qc[3:, 3:] = sigma_t2 * np.eye(3)
-    return discretise(F, Qc, dt)
+    """Phi and Q_k of the translational block (Hu 2024 eq. 4-5, 38-39): constant for a given
+    dt (:func:`tumblenav.dynamics.relative_orbit.cw_discrete`)."""
+    return cw_discrete(n_orbit, sigma_t2, dt)
 
 
 def propagate_rotation(q: Array, w: Array, p: Array, dt: float) -> tuple[Array, Array]:
-    """RK4 of the nominal attitude and rate (Hu 2024 eq. 2, 21) over ``dt``."""
-
-    def f(q_, w_):
-        return rot.quat_derivative(q_, w_), euler_ratios_rhs(w_, p)
-
-    k1q, k1w = f(q, w)
-    k2q, k2w = f(q + 0.5 * dt * k1q, w + 0.5 * dt * k1w)
-    k3q, k3w = f(q + 0.5 * dt * k2q, w + 0.5 * dt * k2w)
-    k4q, k4w = f(q + dt * k3q, w + dt * k3w)
-    q_new = q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q)
-    w_new = w + dt / 6 * (k1w + 2 * k2w + 2 * k3w + k4w)
+    """RK4 of the nominal attitude and rate (Hu 2024 eq. 2, 21) over ``dt``
+    (:func:`tumblenav.dynamics.integrators.rk4_step`), the quaternion renormalised."""
+    q_new, w_new = rk4_step(
+        lambda q_, w_: (rot.quat_derivative(q_, w_), euler_rhs_coefficients(w_, p)), (q, w), dt
+    )
     return q_new / np.linalg.norm(q_new, axis=-1, keepdims=True), w_new
 
 
