@@ -127,21 +127,23 @@ class Belief:
 
 @dataclass(frozen=True)
 class StepInfo:
-    """What an update reports besides the new belief: the NIS and its degrees of freedom
-    (NaN and 0 without an update), measurements rejected by a gate, and whether the filter
-    diverged (then the fold stops the run)."""
+    """What a step reports besides the belief: the NIS and its degrees of freedom (NaN and 0
+    without an update), measurements rejected by a gate, measurements skipped and why
+    (``skipped``: reason -> count, summed by the fold), and whether the filter diverged (then
+    the fold stops the run)."""
 
     nis: float = float("nan")
     dof: int = 0
     rejected: int = 0
     diverged: bool = False
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 class Steps(Protocol):
     """An estimator as stateless steps over one run's measurement stream (epochs ``t``):
 
-    - ``initialise(k)``: the first belief, at epoch ``k``, or None while the start condition
-      is not met (the fold asks again at the next epoch);
+    - ``initialise(k) -> (belief, StepInfo)``: the first belief, at epoch ``k``, or None
+      while the start condition is not met (the fold asks again at the next epoch);
     - ``predict(belief, t) -> belief`` at time ``t``;
     - ``update(belief, k, started) -> (belief, StepInfo)`` with epoch ``k``'s measurement
       (``started``: the belief was initialised at this epoch);
@@ -150,7 +152,7 @@ class Steps(Protocol):
 
     layout: StateLayout
 
-    def initialise(self, k: int) -> Belief | None: ...
+    def initialise(self, k: int) -> tuple[Belief | None, StepInfo]: ...
 
     def predict(self, belief: Belief, t: float) -> Belief: ...
 
@@ -162,8 +164,8 @@ class Steps(Protocol):
 @dataclass(frozen=True)
 class FoldResult:
     """The history of one fold: ``x`` (n, nom), ``P`` (ceil(n / p_every), d, d), ``nis``,
-    ``nis_dof`` (n,), the measurements rejected, whether the run was stopped as diverged, and
-    the last belief's ``memo``."""
+    ``nis_dof`` (n,), the measurements rejected, whether the run was stopped as diverged, the
+    last belief's ``memo`` and the skip counts of every step."""
 
     x: Array
     P: Array
@@ -172,6 +174,7 @@ class FoldResult:
     rejected: int
     diverged: bool
     memo: Any
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 def fold(steps: Steps, t: Array, p_every: int = 1) -> FoldResult:
@@ -188,16 +191,24 @@ def fold(steps: Steps, t: Array, p_every: int = 1) -> FoldResult:
     rejected, diverged = 0, False
     belief: Belief | None = None
     memo = None
+    skipped: dict[str, int] = {}
+
+    def count(info: StepInfo) -> None:
+        for reason, c in info.skipped.items():
+            skipped[reason] = skipped.get(reason, 0) + c
+
     for k in range(n):
         started = False
         if belief is not None:
             belief = steps.predict(belief, float(t[k]))
         elif not diverged:
-            belief = steps.initialise(k)
+            belief, info = steps.initialise(k)
+            count(info)
             started = belief is not None
         if belief is None:
             continue
         belief, info = steps.update(belief, k, started)
+        count(info)
         memo = belief.memo
         if info.diverged:
             belief, diverged = None, True
@@ -208,7 +219,7 @@ def fold(steps: Steps, t: Array, p_every: int = 1) -> FoldResult:
         x[k] = belief.x
         if k % p_every == 0:
             P[k // p_every] = steps.report(belief, k)
-    return FoldResult(x, P, nis, dof, rejected, diverged, memo)
+    return FoldResult(x, P, nis, dof, rejected, diverged, memo, skipped)
 
 
 @dataclass

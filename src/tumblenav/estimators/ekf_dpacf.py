@@ -1141,14 +1141,14 @@ class HuSteps:
     mu_turn: Array
     S_turn: Array
 
-    def initialise(self, k: int) -> Belief | None:
+    def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         """The start prepared by :func:`_initial_state`, at its epoch ``k0``."""
         if k != self.k0:
-            return None
+            return None, StepInfo()
         N = self.fe.usable.shape[2]
         memo = HuMemo(0, 0, np.full((N, 3), np.nan), self.fe.R_GT[0, k].copy(), 0)
         t = float(self.fe.t[k])
-        return Belief(t, self.x0.copy(), self.P0.copy(), self.layout, memo)
+        return Belief(t, self.x0.copy(), self.P0.copy(), self.layout, memo), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
         """Hu 2024 eq. 36-39: F is block diagonal, rotation (9, state dependent) and
