@@ -89,7 +89,15 @@ from tumblenav import rotations as rot
 from tumblenav.dynamics.integrators import rk4_step
 from tumblenav.dynamics.rigid_body import euler_rhs_coefficients
 from tumblenav.errors import InputError
-from tumblenav.estimators.base import Block, EstimateHistory, StateLayout, register
+from tumblenav.estimators.base import (
+    Belief,
+    Block,
+    EstimateHistory,
+    StateLayout,
+    StepInfo,
+    fold,
+    register,
+)
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.frontends import projections as proj
@@ -599,6 +607,110 @@ def _process_noise(tun: KabirTuning, N: int, variant: Variant) -> Array:
     return np.diag(v + [tun.q_k_var] * 2 + [tun.q_feature_var] * (3 * N))
 
 
+@dataclass(frozen=True)
+class _UKFModel:
+    """What the UKF's predict and update share, for one run or a batch: the unscented
+    transform, Q, the gate, the known geometry, the tuning and the variant."""
+
+    ut: _Unscented
+    Q: Array
+    gate: Array | None
+    geom: KabirGeometry
+    tun: KabirTuning
+    variant: Variant
+    N: int
+
+    @classmethod
+    def make(cls, d: int, N: int, geom: KabirGeometry, tun: KabirTuning, variant: Variant):
+        gate = None
+        if tun.gate_probability is not None:
+            gate = stats.chi2.ppf(tun.gate_probability, np.arange(10))  # by dof 0..9
+        ut = _Unscented.make(d, tun.alpha, tun.beta, tun.kappa)
+        return cls(ut, _process_noise(tun, N, variant), gate, geom, tun, variant, N)
+
+    @property
+    def additive(self) -> bool:
+        return self.variant == "additive"
+
+    def sigma(self, x: Array, P: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """Sigma points (B, 2d+1, nom), their offsets, and the runs whose P needed a repair."""
+        off, rep = self.ut.offsets(P)
+        X = x[:, None, :] + off if self.additive else _boxplus(x[:, None, :], off)
+        return X, off, rep
+
+    def predict(self, x: Array, P: Array, dt: float) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """Kabir 2025 eq. 13-15 for B runs over ``dt``; also the runs repaired."""
+        Wm = self.ut.Wm
+        X, _, rep = self.sigma(x, P)
+        w, q = propagate_rotation(X[..., 0:3], X[..., 3:7], X[..., 7:9], dt)
+        if self.additive:
+            X = np.concatenate([w, q, X[..., 7:]], axis=-1)
+            x = Wm @ X
+            D = X - x[:, None, :]
+            x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
+        else:
+            q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+            X = np.concatenate([w, q, X[..., 7:]], axis=-1)
+            x = Wm @ X
+            # mean attitude: the weighted mean e_bar of the sigma points' errors e_i about the
+            # propagated centre point, and their deviations e_i - e_bar (BCH: exact to
+            # O(|e_i| |e_bar|), e_bar being second order in the spread)
+            qc = q[:, 0]
+            e = rot.boxminus_fast(q, qc[:, None, :])
+            e_bar = Wm @ e
+            x[:, 3:7] = rot.boxplus_fast(qc, e_bar)
+            D = np.concatenate(
+                [w - x[:, None, 0:3], e - e_bar[:, None, :], X[..., 7:] - x[:, None, 7:]],
+                axis=-1,
+            )
+        return x, self.ut.cov(D, D) + self.Q, rep
+
+    def update(
+        self, x: Array, P: Array, k: int, zk: Array, Rk: Array, rows: NDArray[np.bool_]
+    ) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_]]:
+        """Kabir 2025 eq. 22-25 for B runs with epoch ``k``'s measurements ``zk``, variances
+        ``Rk`` (B, 9N) where ``rows``; returns x, P, NIS and its dof (B,), the rejected
+        features (B,) and the runs repaired."""
+        ut, geom, N = self.ut, self.geom, self.N
+        B, M, d = x.shape[0], 9 * N, P.shape[-1]
+        diag = np.arange(M)
+        X, off, rep = self.sigma(x, P)
+        Z = measurement_model(
+            X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x
+        ).reshape(B, -1, M)
+        zh = ut.Wm @ Z
+        dZ = Z - zh[:, None, :]
+        S0 = ut.cov(dZ, dZ)
+        S0[:, diag, diag] += np.where(rows, Rk, 0.0)
+        Pxz = ut.cov(off, dZ)
+        nu = np.where(rows, zk - zh, 0.0)
+        rejected = np.zeros(B, dtype=np.int64)
+        if self.gate is not None:
+            rows, rejected = _gate(S0, nu, rows, self.gate, N)
+            nu = np.where(rows, nu, 0.0)
+        both = rows[:, :, None] & rows[:, None, :]
+        S = np.where(both, S0, 0.0)
+        S[:, diag, diag] += ~rows
+        Pxz = Pxz * rows[:, None, :]
+        sol = np.linalg.solve(S, np.concatenate([np.swapaxes(Pxz, 1, 2), nu[..., None]], 2))
+        Kt, Sinv_nu = sol[..., :d], sol[..., d]
+        dx = (Pxz @ Sinv_nu[..., None])[..., 0]
+        P = P - Pxz @ Kt
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        if self.additive:
+            x = x + dx
+            x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
+        else:
+            x = _boxplus(x, dx)
+            # reset of the error to the new nominal: theta' = theta - dtheta +
+            # 1/2 [dtheta x] theta (BCH), so P <- G P G^T, G = I + 1/2 [dtheta x]
+            G = np.broadcast_to(np.eye(d), P.shape).copy()
+            G[:, 3:6, 3:6] += 0.5 * rot.skew(dx[:, 3:6])
+            P = G @ P @ np.swapaxes(G, -1, -2)
+        nis = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
+        return x, P, nis, rows.sum(1), rejected, rep
+
+
 def _filter(
     t: Array,
     z: Array,
@@ -609,7 +721,8 @@ def _filter(
     tun: KabirTuning,
     variant: Variant,
 ) -> dict[str, Any]:
-    """Run B filters at once: z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d).
+    """The batched engine: B filters at once, z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d);
+    the same predict and update as :class:`UKFSteps` (tested equal to its fold).
 
     Returns x (B, n, nom), P (B, n, d, d) of the filter's own state, nis, nis_dof,
     rejected (B,), diverged_at (B,) epoch or -1, repairs (B,).
@@ -618,17 +731,10 @@ def _filter(
     M = 9 * N
     nom = 9 + 3 * N
     d = P0.shape[-1]
-    additive = variant == "additive"
-    ut = _Unscented.make(d, tun.alpha, tun.beta, tun.kappa)
-    Wm = ut.Wm
-    Q = _process_noise(tun, N, variant)
+    m = _UKFModel.make(d, N, geom, tun, variant)
     z = z.reshape(B, n, M)
     Rv = Rv.reshape(B, n, M)
     usable = np.isfinite(z) & np.isfinite(Rv)
-    gate = None
-    if tun.gate_probability is not None:
-        gate = stats.chi2.ppf(tun.gate_probability, np.arange(10))  # by dof 0..9
-    diag = np.arange(M)
     x = np.array(x0, dtype=float)
     P = np.array(P0, dtype=float)
     xs = np.full((B, n, nom), np.nan)
@@ -639,88 +745,22 @@ def _filter(
     repairs = np.zeros(B, dtype=np.int64)
     diverged_at = np.full(B, -1, dtype=np.int64)
     alive = np.ones(B, dtype=bool)
-    R_CI, cx = geom.R_CI, geom.centres_x
-
-    def sigma(x, P):
-        off, rep = ut.offsets(P)
-        repairs[rep & alive] += 1
-        X = x[:, None, :] + off if additive else _boxplus(x[:, None, :], off)
-        return X, off
 
     # a diverging run overflows before it is caught (and stopped) by the finite check
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         for k in range(n):
             x_prev, P_prev = x, P
             try:
-                if k > 0:  # --- predict (Kabir 2025 eq. 13-15) ---
-                    X, _ = sigma(x, P)
-                    w, q = propagate_rotation(
-                        X[..., 0:3], X[..., 3:7], X[..., 7:9], t[k] - t[k - 1]
-                    )
-                    if additive:
-                        X = np.concatenate([w, q, X[..., 7:]], axis=-1)
-                        x = Wm @ X
-                        D = X - x[:, None, :]
-                        x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
-                    else:
-                        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-                        X = np.concatenate([w, q, X[..., 7:]], axis=-1)
-                        x = Wm @ X
-                        # mean attitude: the weighted mean e_bar of the sigma points' errors e_i
-                        # about the propagated centre point, and their deviations e_i - e_bar
-                        # (BCH: exact to O(|e_i| |e_bar|), e_bar being second order in the spread)
-                        qc = q[:, 0]
-                        e = rot.boxminus_fast(q, qc[:, None, :])
-                        e_bar = Wm @ e
-                        x[:, 3:7] = rot.boxplus_fast(qc, e_bar)
-                        D = np.concatenate(
-                            [
-                                w - x[:, None, 0:3],
-                                e - e_bar[:, None, :],
-                                X[..., 7:] - x[:, None, 7:],
-                            ],
-                            axis=-1,
-                        )
-                    P = ut.cov(D, D) + Q
+                if k > 0:
+                    x, P, rep = m.predict(x, P, t[k] - t[k - 1])
+                    repairs[rep & alive] += 1
                 rows = usable[:, k] & alive[:, None]
-                if rows.any():  # --- update (Kabir 2025 eq. 22-25) ---
-                    X, off = sigma(x, P)
-                    Z = measurement_model(X, R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], cx).reshape(
-                        B, -1, M
-                    )
-                    zh = Wm @ Z
-                    dZ = Z - zh[:, None, :]
-                    S0 = ut.cov(dZ, dZ)
-                    S0[:, diag, diag] += np.where(rows, Rv[:, k], 0.0)
-                    Pxz = ut.cov(off, dZ)
-                    nu = np.where(rows, z[:, k] - zh, 0.0)
-                    if gate is not None:
-                        rows, nrej = _gate(S0, nu, rows, gate, N)
-                        rejected += nrej
-                        nu = np.where(rows, nu, 0.0)
-                    both = rows[:, :, None] & rows[:, None, :]
-                    S = np.where(both, S0, 0.0)
-                    S[:, diag, diag] += ~rows
-                    Pxz = Pxz * rows[:, None, :]
-                    sol = np.linalg.solve(
-                        S, np.concatenate([np.swapaxes(Pxz, 1, 2), nu[..., None]], 2)
-                    )
-                    Kt, Sinv_nu = sol[..., :d], sol[..., d]
-                    dx = (Pxz @ Sinv_nu[..., None])[..., 0]
-                    P = P - Pxz @ Kt
-                    P = 0.5 * (P + np.swapaxes(P, -1, -2))
-                    if additive:
-                        x = x + dx
-                        x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
-                    else:
-                        x = _boxplus(x, dx)
-                        # reset of the error to the new nominal: theta' = theta - dtheta +
-                        # 1/2 [dtheta x] theta (BCH), so P <- G P G^T, G = I + 1/2 [dtheta x]
-                        G = np.broadcast_to(np.eye(d), P.shape).copy()
-                        G[:, 3:6, 3:6] += 0.5 * rot.skew(dx[:, 3:6])
-                        P = G @ P @ np.swapaxes(G, -1, -2)
-                    nis[:, k] = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
-                    nis_dof[:, k] = rows.sum(1)
+                if rows.any():
+                    x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows)
+                    repairs[rep & alive] += 1
+                    rejected += rej
+                    nis[:, k] = nis_k
+                    nis_dof[:, k] = dof_k
                 ok = _sane(x, P)
             except np.linalg.LinAlgError:
                 ok = np.zeros(B, dtype=bool)
@@ -736,8 +776,9 @@ def _filter(
             xs[:, k] = np.where(alive[:, None], x, np.nan)
             Ps[:, k] = np.where(alive[:, None, None], P, np.nan)
     nis[~np.isfinite(xs[..., 0])] = np.nan
-    out = {
+    return {
         "x": xs,
+        "P": Ps,
         "nis": nis,
         "nis_dof": nis_dof,
         "rejected": rejected,
@@ -745,8 +786,77 @@ def _filter(
         "repairs": repairs,
         "usable": usable.reshape(B, n, N, 9),
     }
-    out["P"] = Ps
-    return out
+
+
+def _filter_layout(n_features: int, variant: Variant) -> StateLayout:
+    """The layout the filter itself works in: :func:`layout` for ``mult``; for the additive
+    UKF the quaternion is an additive 4-vector (24-dim covariance, turned into the 23-dim
+    error-state covariance for the history: :func:`additive_to_error_cov`)."""
+    if variant == "mult":
+        return layout(n_features)
+    return StateLayout(
+        (
+            Block("rate", "vector", 3),
+            Block("attitude_additive", "vector", 4),
+            Block("inertia", "vector", 2),
+            Block("features", "vector", 3 * n_features),
+        )
+    )
+
+
+@dataclass(frozen=True)
+class UKFSteps:
+    """Kabir 2025's UKF as stateless steps on one run's prepared measurements, folded by
+    :func:`tumblenav.estimators.base.fold` (the reference engine of :func:`run_ukf`; the
+    batched :func:`_filter` is the fast one for campaigns, tested equal). The filter starts
+    at the first epoch from ``x0``, ``P0``; a state or covariance that is no longer finite or
+    absurd stops the run (counted as diverged, Kabir 2025 Sec. 3.2)."""
+
+    model: _UKFModel
+    t: Array
+    z: Array  # (n, 9N)
+    Rv: Array  # (n, 9N)
+    x0: Array
+    P0: Array
+    layout: StateLayout
+
+    def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
+        if k != 0:
+            return None, StepInfo()
+        return Belief(float(self.t[0]), self.x0.copy(), self.P0.copy(), self.layout), StepInfo()
+
+    def predict(self, belief: Belief, t: float) -> Belief:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            try:
+                x, P, rep = self.model.predict(belief.x[None], belief.P[None], t - belief.t)
+            except np.linalg.LinAlgError:  # update() sees a non-finite state: diverged
+                x, P, rep = np.full((1,) + belief.x.shape, np.nan), belief.P[None], [False]
+        return Belief(t, x[0], P[0], self.layout, memo=int(rep[0]))
+
+    def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
+        repairs = belief.memo or 0
+        rows = (np.isfinite(self.z[k]) & np.isfinite(self.Rv[k]))[None]
+        x, P = belief.x[None], belief.P[None]
+        nis, dof, rej = float("nan"), 0, 0
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            try:
+                if rows.any():
+                    x, P, nis_k, dof_k, rej_k, rep = self.model.update(
+                        x, P, k, self.z[k][None], self.Rv[k][None], rows
+                    )
+                    nis, dof, rej = float(nis_k[0]), int(dof_k[0]), int(rej_k[0])
+                    repairs += int(rep[0])
+                ok = bool(_sane(x, P)[0])
+            except np.linalg.LinAlgError:
+                ok = False
+        skipped = {"covariance_repairs": repairs}
+        out = Belief(belief.t, x[0], P[0], self.layout)
+        if not ok:
+            return belief, StepInfo(diverged=True, skipped=skipped)
+        return out, StepInfo(nis=nis, dof=dof, rejected=rej, skipped=skipped)
+
+    def report(self, belief: Belief, k: int) -> Array:
+        return belief.P
 
 
 # A run is stopped (counted as diverged) once its state or covariance is no longer finite or
@@ -840,9 +950,29 @@ def run_ukf(
         x0_, P0_ = initial_state(scenario, t, z, geom, tun, variant)
         x0 = x0_ if x0 is None else x0
         P0 = P0_ if P0 is None else P0
-    res = _filter(
-        t, z[None], R_diag[None], np.asarray(x0)[None], np.asarray(P0)[None], geom, tun, variant
+    n = len(t)
+    steps = UKFSteps(
+        model=_UKFModel.make(np.asarray(P0).shape[-1], N, geom, tun, variant),
+        t=t,
+        z=z.reshape(n, 9 * N),
+        Rv=R_diag.reshape(n, 9 * N),
+        x0=np.asarray(x0, dtype=float),
+        P0=np.asarray(P0, dtype=float),
+        layout=_filter_layout(N, variant),
     )
+    r = fold(steps, t)
+    stopped = np.flatnonzero(np.isfinite(r.x[:-1, 0]) & ~np.isfinite(r.x[1:, 0])) + 1
+    usable = np.isfinite(z) & np.isfinite(R_diag)
+    res = {
+        "x": r.x[None],
+        "P": r.P[None],
+        "nis": r.nis[None],
+        "nis_dof": r.nis_dof[None].astype(np.int64),
+        "rejected": np.array([r.rejected]),
+        "diverged_at": np.array([(int(stopped[0]) if len(stopped) else 0) if r.diverged else -1]),
+        "repairs": np.array([r.skipped.get("covariance_repairs", 0)]),
+        "usable": usable[None],
+    }
     return _history(t, res, 0, variant, tun, np.asarray(x0))
 
 
