@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from tumblenav.campaign.runner import evaluate_runs, run_campaign
-from tumblenav.estimators import ekf_dpacf
+from tumblenav.estimators.hu2024 import filter as hu_filter
 from tumblenav.scenario import load_scenario
 
 NOISE_RAD = (0.1e-5, 0.5e-5, 2e-5, 5e-5)
@@ -50,14 +50,14 @@ def main() -> None:
     sc = base.with_updates(**{"sensor.noise.angular_rad": 2e-5})
     per_run = {}
     for engine in ("numpy", "compiled"):
-        ekf_dpacf.ENGINE = engine
+        hu_filter.ENGINE = engine
         evaluate_runs(sc, "ekf-dpacf", 99, [0])  # warm-up (compilation cache, imports)
         t1 = time.perf_counter()
         for k in range(args.loop_runs):
             evaluate_runs(sc, "ekf-dpacf", 99, [k])
         per_run[engine] = (time.perf_counter() - t1) / args.loop_runs
         print(f"one-run-at-a-time loop, {engine} filter: {per_run[engine]:.3f} s per run")
-    ekf_dpacf.ENGINE = "auto"
+    hu_filter.ENGINE = "auto"
     loop_per_run = per_run["numpy"]
     per_step_us = wall / (total_runs * steps) * 1e6
     ratio = loop_per_run * total_runs / wall

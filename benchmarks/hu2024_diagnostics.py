@@ -152,7 +152,7 @@ def main() -> None:
         # its covariance cov_TI (frame part + G attitude part)
         va = np.full(fe.R_GT.shape[:2], np.nan)
         for b, tr in enumerate(truths):
-            R_TcT = hu.canonical_frame(fe.template_G[b], fe.known[b], tr)
+            R_TcT = evaluation.alignment.canonical_frame(fe.template_G[b], fe.known[b], tr)
             qt = rot.quat_multiply(rot.matrix_to_quat(R_TcT), tr.q_TI)
             ok = np.all(np.isfinite(fe.q_TI[b]), -1) & np.all(np.isfinite(fe.cov_TI[b]), (-1, -2))
             e = rot.log_map(

@@ -71,9 +71,10 @@ _EXAMPLE_FEATURES = 2
 
 def estimator_layouts(n_features: int) -> dict[str, StateLayout]:
     """The state layout of every registered estimator, with ``n_features`` features."""
-    from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf
+    from tumblenav.estimators import ekf_depth, ukf
+    from tumblenav.estimators.hu2024 import model as hu_model
 
-    hu, kabir = ekf_dpacf.layout(n_features), ukf.layout(n_features)
+    hu, kabir = hu_model.layout(n_features), ukf.layout(n_features)
     return {
         "ekf-dpacf": hu,
         "ekf-baseline": hu,
@@ -254,10 +255,11 @@ def tuning_table(model: Any, only: Iterable[str] | None = None) -> str:
 def tuning_sections() -> dict[str, str]:
     """The ``estimator.tuning`` tables, read off the estimators' tuning models, so that the
     documented defaults are the ones used."""
-    from tumblenav.estimators import ekf_depth, ekf_dpacf, ukf, ukf_gp
+    from tumblenav.estimators import ekf_depth, ukf, ukf_gp
+    from tumblenav.estimators.hu2024 import tuning as hu_tuning
     from tumblenav.frontends.stereo_points import StereoPointsTuning
 
-    hu, base = ekf_dpacf.HuTuning, ekf_dpacf.BaselineTuning
+    hu, base = hu_tuning.HuTuning, hu_tuning.BaselineTuning
     differ = [
         k for k in hu.model_fields if _default(hu.model_fields[k]) != _default(base.model_fields[k])
     ]

@@ -13,7 +13,7 @@ from pathlib import Path
 import tumblenav
 
 KERNEL_MODULES = (
-    "estimators/_hu_kernel.py",
+    "estimators/hu2024/kernels.py",
     "frontends/_points_kernel.py",
     "rotations_compiled.py",
     "dynamics/compiled.py",

@@ -12,7 +12,7 @@ stacks and is an ordinary compiled call.
 
 numba's on-disk cache of a kernel follows the kernel's own file only: after editing this
 module, clear the callers' caches (``__pycache__/*.nbi``, ``*.nbc`` beside
-``estimators/_hu_kernel.py`` and ``frontends/_points_kernel.py``) or they keep the old code.
+``estimators/hu2024/kernels.py`` and ``frontends/_points_kernel.py``) or they keep the old code.
 """
 
 from __future__ import annotations

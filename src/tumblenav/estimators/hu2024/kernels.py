@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit
 
 from tumblenav.dynamics.compiled import rk4_attitude
-from tumblenav.estimators.ekf_dpacf import layout
+from tumblenav.estimators.hu2024.model import layout
 from tumblenav.rotations_compiled import (
     boxminus,
     boxplus,
@@ -52,7 +52,7 @@ _NQ, _NW, _NP, _NR, _NV, _NF = (_LAYOUT.nom(b).start for b in _BLOCKS)
 # then the features; a nominal index is its error index + 1 after the quaternion).
 _SHIFT = _NW - _SW
 if (_SA, _SW, _SP, _SR, _SV, _SF) != (0, 3, 6, 9, 12, 15) or _SHIFT != 1 or _NV != _NR + 3:
-    raise ImportError("_hu_kernel: ekf_dpacf.layout changed; the kernel's loops need updating")
+    raise ImportError("hu2024.kernels: model.layout changed; the kernel's loops need updating")
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")

@@ -1,0 +1,432 @@
+"""Hu 2024's filter run: the front end, the filter's view of it, the steps on a frozen belief
+(:class:`HuSteps`, folded per run: the reference engine) and :func:`run_filter` (that fold, or
+the compiled kernel, :mod:`.kernels`), and the histories it returns."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from tumblenav import rotations as rot
+from tumblenav.dynamics.integrators import discretise
+from tumblenav.errors import InputError
+from tumblenav.estimators.base import (
+    Belief,
+    EstimateHistory,
+    StateLayout,
+    StepInfo,
+    fold,
+)
+from tumblenav.estimators.context import context_from_scenario
+from tumblenav.estimators.hu2024.frame import _follow_dpacf_branch, _reframe, frame_consider_cov
+from tumblenav.estimators.hu2024.init import _initial_state
+from tumblenav.estimators.hu2024.model import (
+    _FLIPS,
+    CONSTRAIN_EVERY,
+    MAX_RATE_RAD_S,
+    _diverged,
+    _neutral_state,
+    _translation_discrete,
+    constrain_inertia,
+    core_F,
+    core_Qc,
+    layout,
+    propagate_rotation,
+)
+from tumblenav.estimators.hu2024.tuning import HuTuning, parse_tuning
+from tumblenav.estimators.hu2024.update import _update, _update_sequential
+from tumblenav.frontends import stereo_points
+from tumblenav.frontends.inertia import branch_statistics
+
+Array = NDArray[np.float64]
+
+
+def run_filter(
+    scenario: Any,
+    meas_list: list,
+    use_dpacf: bool,
+    p_every: int = 1,
+    engine: Literal["auto", "numpy", "compiled"] | None = None,
+) -> dict[str, Any]:
+    """Run the EKF on B runs at once. Returns the histories ``x`` (B, n, nom) and ``P``
+    (B, ceil(n / p_every), d, d), the covariance of every ``p_every``-th epoch (campaigns need
+    it only for the NEES, at about 1 Hz), the NIS and what each run skipped. It never
+    sees the truth: errors are the evaluation's (:mod:`tumblenav.evaluation`).
+
+    ``engine``: the compiled per-run loop (:mod:`tumblenav.estimators.hu2024.kernels`) or the
+    batched numpy loop below; both give the same result (tests). ``auto`` takes the compiled
+    one wherever it covers the tuning (eq. 31 attitude measurement, no innovation gate).
+    ``None``: the module's ``ENGINE`` (benchmarks set it to time the numpy loop)."""
+    scenario = context_from_scenario(scenario)  # never the target's truth
+    engine = engine or ENGINE
+    tun = parse_tuning(scenario.estimator.tuning, use_dpacf)
+    consider = use_dpacf and tun.dpacf_frame_error == "consider"
+    refine = tun.refine_start
+    # iterated update: prior attitude variance (trace) above this (0: never)
+    iter_var = 3.0 * tun.iterate_sigma_rad**2
+    s_t2 = (
+        tun.sigma_t2_m2_s4
+        if tun.sigma_t2_m2_s4 is not None
+        else scenario.process_noise.translational_m2_s4
+    )
+    s_r2 = (
+        tun.sigma_r2_rad2_s4
+        if tun.sigma_r2_rad2_s4 is not None
+        else scenario.process_noise.rotational_rad2_s4
+    )
+    n_orbit = scenario.chaser.orbit.mean_motion_rad_s if scenario.chaser.orbit else 0.0
+    covered = tun.dpacf_measurement == "attitude" and tun.gate_probability is None
+    if engine == "compiled" and not covered:
+        raise ValueError("the compiled engine covers dpacf_measurement 'attitude' without a gate")
+    fe_all = frontend(meas_list, tun)
+    fe = filter_view(fe_all, tun.max_dpacf_sigma_rad)
+    B, n, N = fe.usable.shape
+    lay = layout(N)
+    init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider, refine=refine)
+    p_turn = np.zeros((B, n, 3))
+    mu_turn = np.zeros((B, n, 3, 3))
+    S_turn = np.zeros((B, n, 3, 3, 3))
+    if consider and tun.branch_mixture:
+        # the front end re-solves its frame every ls_every epochs and holds it in between
+        every = stereo_points.FrontEndSettings().ls_every
+        stat = branch_statistics(fe.R_GT[:, ::every], fe.cov_frame[:, ::every])
+        p_turn, mu_turn, S_turn = (np.repeat(a, every, axis=1)[:, :n] for a in stat)
+    d = lay.dim
+    gate = stats.chi2.ppf(tun.gate_probability, 3) if tun.gate_probability else np.inf
+    if np.isfinite(gate) and tun.dpacf_measurement == "frame":
+        raise InputError(
+            "estimator.tuning: gate_probability works with dpacf_measurement 'attitude' only"
+        )
+    dt_nom = float(np.median(np.diff(fe.t)))
+    att_inflation = max(1.0, tun.attitude_corr_time_s / (dt_nom * tun.attitude_meas_every))
+    if consider:  # the attitude measurement's noise: its white (G attitude) part only
+        att_inflation = 0.0
+    t = fe.t
+    out_x = np.full((B, n, lay.nominal_dim), np.nan)
+    out_P = np.full((B, -(-n // p_every), d, d), np.nan)  # epochs 0, p_every, 2 p_every, ...
+    nis = np.full((B, n), np.nan)
+    nis_dof = np.zeros((B, n))
+    rejected = np.zeros(B, dtype=np.int64)
+    diverged = np.zeros(B, dtype=bool)
+    flips = np.zeros(B, dtype=np.int64)
+
+    def pack() -> dict[str, Any]:
+        return {
+            "t": t,
+            "x": out_x,
+            "P": out_P,
+            "nis": nis,
+            "nis_dof": nis_dof,
+            "layout": lay,
+            "frontend": fe,
+            "k0": init.k0,
+            "rejected": rejected,
+            "diverged": diverged,
+            "frame_flips": flips,
+            "dpacf_q_TI": fe_all.q_TI,
+        }
+
+    uniform = bool(np.allclose(np.diff(t), dt_nom, rtol=1e-9, atol=0))
+    compiled_ok = covered and uniform
+    if engine == "compiled" and not uniform:
+        raise ValueError("the compiled engine needs a uniform time grid")
+    if engine != "numpy" and compiled_ok:
+        from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+
+        diverged = np.zeros(B, dtype=np.bool_)
+        R0 = np.nan_to_num(fe.cov_TI + (att_inflation - 1.0) * fe.cov_frame)
+        Pht, Qt = _translation_discrete(n_orbit, s_t2, dt_nom)  # uniform grid: one dt
+
+        # cov_L as it is (no NaN-free copy of the largest array): the kernel reads it only where
+        # ``usable``, which the triangulation sets only for finite covariances
+        _hu_kernel.run_filter_kernel(
+            t, fe.p_L, np.ascontiguousarray(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
+            init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
+            tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
+            MAX_RATE_RAD_S,
+            s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
+            _FLIPS, rot.matrix_to_quat(_FLIPS), p_every, _neutral_state(lay), out_x, out_P,
+            nis, nis_dof, diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
+            S_turn, refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
+        )  # fmt: skip
+        return pack()
+    # the reference engine: each run folded through Hu's steps (tumblenav.estimators.base.fold)
+    for b in range(B):
+        steps = HuSteps(
+            fe=_run_view(fe, b),
+            tun=tun,
+            use_dpacf=use_dpacf,
+            layout=lay,
+            k0=int(init.k0[b]),
+            x0=init.x0[b],
+            P0=init.P0[b],
+            n_orbit=n_orbit,
+            s_r2=s_r2,
+            s_t2=s_t2,
+            consider=consider,
+            refine=refine,
+            iter_var=iter_var,
+            gate=float(gate),
+            att_inflation=att_inflation,
+            p_turn=p_turn[b : b + 1],
+            mu_turn=mu_turn[b : b + 1],
+            S_turn=S_turn[b : b + 1],
+        )
+        r = fold(steps, t, p_every)
+        out_x[b], out_P[b], nis[b], nis_dof[b] = r.x, r.P, r.nis, r.nis_dof
+        rejected[b], diverged[b] = r.rejected, r.diverged
+        flips[b] = r.memo.flips if r.memo is not None else 0
+    return pack()
+
+
+def _run_view(fe: stereo_points.PointsFrontEnd, b: int) -> stereo_points.PointsFrontEnd:
+    """Run ``b`` of a batched front end, as a batch of one (the arrays keep their run axis)."""
+    B = fe.usable.shape[0]
+    upd = {}
+    for f in dataclasses.fields(fe):
+        v = getattr(fe, f.name)
+        if f.name != "t" and isinstance(v, np.ndarray) and v.ndim and v.shape[0] == B:
+            upd[f.name] = v[b : b + 1]
+    upd["skipped"] = {k: np.asarray(v)[b : b + 1] for k, v in fe.skipped.items()}
+    view = dataclasses.replace(fe, **upd)
+    view.R_LI = fe.R_LI[b : b + 1]
+    return view
+
+
+@dataclass(frozen=True)
+class HuMemo:
+    """What Hu's filter carries from epoch to epoch besides x and P (one run): the
+    consecutive DPACF measurements a half turn away and the half turns followed
+    (:func:`_follow_dpacf_branch`), the features' first estimates (FEJ linearisation points,
+    (N, 3), NaN before), and with the 'consider' frame model the front end's frame the state
+    is in and the epoch it is from."""
+
+    votes: int
+    flips: int
+    f_first: Array
+    R_used: Array
+    k_used: int
+
+
+@dataclass(frozen=True)
+class HuSteps:
+    """Hu 2024's EKF (eq. 36-44) as stateless steps on one run's front-end output, folded by
+    :func:`tumblenav.estimators.base.fold`: the reference engine of :func:`run_filter`. The
+    compiled kernel (:mod:`.kernels`) is the fast fold of the same steps (tested equal on
+    runs drawn at random). The arrays are those of a batch of one (leading axis 1), so that
+    the batched model pieces of this module serve both."""
+
+    fe: stereo_points.PointsFrontEnd
+    tun: HuTuning
+    use_dpacf: bool
+    layout: StateLayout
+    k0: int
+    x0: Array
+    P0: Array
+    n_orbit: float
+    s_r2: float
+    s_t2: float
+    consider: bool
+    refine: bool
+    iter_var: float
+    gate: float
+    att_inflation: float
+    p_turn: Array
+    mu_turn: Array
+    S_turn: Array
+
+    def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
+        """The start prepared by :func:`_initial_state`, at its epoch ``k0``."""
+        if k != self.k0:
+            return None, StepInfo()
+        N = self.fe.usable.shape[2]
+        memo = HuMemo(0, 0, np.full((N, 3), np.nan), self.fe.R_GT[0, k].copy(), 0)
+        t = float(self.fe.t[k])
+        return Belief(t, self.x0.copy(), self.P0.copy(), self.layout, memo), StepInfo()
+
+    def predict(self, belief: Belief, t: float) -> Belief:
+        """Hu 2024 eq. 36-39: F is block diagonal, rotation (9, state dependent) and
+        translation (6, constant)."""
+        lay, tun = self.layout, self.tun
+        sq, sw, sp = lay.nom("attitude"), lay.nom("rate"), lay.nom("inertia")
+        srv = slice(lay.nom("position").start, lay.nom("velocity").stop)
+        dt = t - belief.t
+        x, P = belief.x[None].copy(), belief.P[None].copy()
+        F = core_F(x[:, sw], x[:, sp], self.n_orbit, rotation_only=True)
+        Phr, Qr = discretise(F, core_Qc(x[:, sp], self.s_r2, self.s_t2)[:, :9, :9], dt)
+        Pht, Qt = _translation_discrete(self.n_orbit, self.s_t2, dt)
+        q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
+        x[:, sq], x[:, sw] = q_new, w_new
+        x[:, srv] = x[:, srv] @ Pht.T
+        P[:, :9, :] = Phr @ P[:, :9, :]
+        P[:, 9:15, :] = Pht @ P[:, 9:15, :]
+        P[:, :, :9] = P[:, :, :9] @ np.swapaxes(Phr, -1, -2)
+        P[:, :, 9:15] = P[:, :, 9:15] @ Pht.T
+        P[:, :9, :9] += Qr
+        P[:, 9:15, 9:15] += Qt
+        if tun.sigma_f2_m2_s > 0:
+            sf = lay.err("features")
+            P[:, sf, sf] += tun.sigma_f2_m2_s * dt * np.eye(sf.stop - sf.start)
+        return dataclasses.replace(belief, t=t, x=x[0], P=P[0])
+
+    def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
+        """Epoch ``k``'s measurements: the frame change ('consider'), the DPACF branch, the
+        feature (eq. 32-35) and attitude (eq. 31) updates, iterated where the prior attitude
+        is poorly known, the inertia constraint; a blown-up state is reported diverged."""
+        lay, tun, fe = self.layout, self.tun, self.fe
+        m = belief.memo
+        x, P = belief.x[None].copy(), belief.P[None].copy()
+        f_first, R_used = m.f_first[None].copy(), m.R_used[None].copy()
+        k_used = np.array([m.k_used])
+        votes, flips = np.array([m.votes]), np.array([m.flips])
+        active, start = np.array([True]), np.array([started])
+        if self.consider:
+            k_used[_reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)] = k
+        if tun.dpacf_measurement == "frame":
+            use_att = "frame" if self.use_dpacf and k % tun.frame_meas_every == 0 else False
+        else:
+            use_att = self.use_dpacf and tun.attitude_update and (k % tun.attitude_meas_every == 0)
+        # a refined start has used its epoch's measurements already (refine_start_pose)
+        upd = active & ~start if self.refine else active
+        if self.use_dpacf and k % tun.attitude_meas_every == 0:
+            x, P, votes = _follow_dpacf_branch(
+                x, P, fe.q_TI[:, k], upd, lay, votes, tun.flip_epochs, flips, f_first
+            )
+        if np.isfinite(self.gate):
+            x, P, nis_k, dof_k, rej = _update(
+                x, P, fe, k, lay, use_att, self.gate, self.att_inflation, upd
+            )
+        else:
+            if tun.first_estimates_jacobian:
+                N = f_first.shape[1]
+                fnow = x[:, lay.nom("features")].reshape(1, N, 3)
+                fresh = (start[:, None] & fe.known_at[:, k]) | (
+                    active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0])
+                )
+                f_first = np.where(fresh[..., None], fnow, f_first)
+            f_l = f_first if tun.first_estimates_jacobian else None
+            x_pr, P_pr = x, P
+            x, P, nis_k, dof_k, rej = _update_sequential(
+                x_pr, P_pr, fe, k, lay, use_att, self.att_inflation, upd, f_lin=f_l
+            )
+            # iterated update where the prior attitude is poorly known (after a gap)
+            its = upd & (
+                np.trace(P_pr[:, lay.err("attitude"), lay.err("attitude")], axis1=-2, axis2=-1)
+                > self.iter_var
+            )
+            if self.iter_var > 0 and its.any():
+                for _ in range(tun.iterate_max):
+                    x2, P2, nis2, _dof2, _r = _update_sequential(
+                        x_pr, P_pr, fe, k, lay, use_att, self.att_inflation, upd, f_lin=f_l,
+                        x_lin=x,
+                    )  # fmt: skip
+                    x = np.where(its[:, None], x2, x)
+                    P = np.where(its[:, None, None], P2, P)
+                    nis_k = np.where(its, nis2, nis_k)
+        if started or k % CONSTRAIN_EVERY == 0:
+            x, P = constrain_inertia(x, P, lay, active, curvature=tun.constraint_curvature)
+        memo = HuMemo(int(votes[0]), int(flips[0]), f_first[0], R_used[0], int(k_used[0]))
+        out = dataclasses.replace(belief, x=x[0], P=P[0], memo=memo)
+        if _diverged(x, P, lay)[0]:
+            return out, StepInfo(diverged=True)
+        return out, StepInfo(float(nis_k[0]), int(dof_k[0]), int(rej[0]))
+
+    def report(self, belief: Belief, k: int) -> Array:
+        """The covariance reported: with the 'consider' frame model it also holds the
+        frame's own error and half turns (:func:`frame_consider_cov`)."""
+        if not self.consider:
+            return belief.P
+        ku = (np.array([0]), np.array([belief.memo.k_used]))
+        return frame_consider_cov(
+            belief.x[None], belief.P[None], self.fe.cov_frame[ku], self.layout,
+            self.p_turn[ku], self.mu_turn[ku], self.S_turn[ku],
+        )[0]  # fmt: skip
+
+
+def filter_view(
+    fe: stereo_points.PointsFrontEnd, max_sigma_rad: float
+) -> stereo_points.PointsFrontEnd:
+    """The front end as the filter uses it: DPACF frames (attitude measurement, frame, moments)
+    only where the frame's 1-sigma (largest axis) is below ``max_sigma_rad``. The front end
+    itself reports them from ``dpacf_emit_sigma_rad`` on (Hu 2024 Fig. 5)."""
+    # frames are re-solved every ls_every epochs and held in between: test the solved ones
+    every = stereo_points.FrontEndSettings().ls_every
+    n = fe.cov_frame.shape[1]
+    C = np.nan_to_num(fe.cov_frame[:, ::every], nan=1e6)
+    sig = np.repeat(np.sqrt(np.linalg.eigvalsh(C)[..., -1]), every, axis=1)[:, :n]
+    keep = sig < max_sigma_rad
+    view = dataclasses.replace(
+        fe,
+        q_TI=np.where(keep[..., None], fe.q_TI, np.nan),
+        cov_TI=np.where(keep[..., None, None], fe.cov_TI, np.nan),
+        cov_frame=np.where(keep[..., None, None], fe.cov_frame, np.nan),
+        cov_ratios=np.where(keep[..., None, None], fe.cov_ratios, np.nan),
+        R_GT=np.where(keep[..., None, None], fe.R_GT, np.nan),
+        moments=np.where(keep[..., None], fe.moments, np.nan),
+    )
+    view.R_LI = fe.R_LI
+    return view
+
+
+def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
+    """The stereo-points front end on B runs, with the settings ``tun.frontend``."""
+    fe = tun.frontend
+    out = stereo_points.process(
+        meas_list,
+        stereo_points.FrontEndSettings(
+            rate_half_window=fe.rate_half_window,
+            min_ls_epochs=fe.min_ls_epochs,
+            max_dpacf_sigma_rad=max(fe.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
+            g_fit=fe.g_attitude_fit,
+            template_refine_s=tuple(np.atleast_1d(np.asarray(fe.template_refine_s, float))),
+            unbiased_last=fe.ls_unbiased_rates,
+        ),
+    )
+    out.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))
+    return out
+
+
+ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)
+
+
+def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
+    """One :class:`EstimateHistory` per run of a :func:`run_filter` result."""
+    fe = res["frontend"]
+    max_sigma = parse_tuning(scenario.estimator.tuning).max_dpacf_sigma_rad
+    out = []
+    for b in range(res["x"].shape[0]):
+        skipped = {k: int(v[b]) for k, v in fe.skipped.items()}
+        skipped["gated_out"] = int(res["rejected"][b])
+        skipped["diverged"] = int(res["diverged"][b])
+        skipped["frame_flips"] = int(res["frame_flips"][b])
+        k0 = res["k0"][b]
+        out.append(
+            EstimateHistory(
+                t=res["t"],
+                x=res["x"][b],
+                P=res["P"][b],
+                P_every=-(-len(res["t"]) // res["P"].shape[1]),
+                layout=res["layout"],
+                nis=res["nis"][b],
+                nis_dof=res["nis_dof"][b],
+                skipped=skipped,
+                info={
+                    "convention": "hu2024",  # the run's DPACF frame: evaluation.alignment
+                    "template_G": fe.template_G[b],
+                    "known": fe.known[b],
+                    "start_time_s": float(res["t"][k0]) if k0 >= 0 else None,
+                    "dpacf_q_TI": res["dpacf_q_TI"][b],
+                    "start_condition": (
+                        "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
+                        f"{max_sigma} rad; epochs with >= 3 triangulated features: "
+                        f"{int((fe.usable[b].sum(axis=1) >= 3).sum())} of {len(fe.t)})"
+                    ),
+                },
+            )
+        )
+    return out

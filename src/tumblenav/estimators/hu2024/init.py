@@ -1,0 +1,399 @@
+"""Hu 2024 filter start: the mass centre and features from the rotation seen before the start,
+the refined start pose, the initial state and covariance (beyond the paper, see each function)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav import rotations as rot
+from tumblenav.estimators.base import (
+    StateLayout,
+)
+from tumblenav.estimators.hu2024.frame import frame_jacobian
+from tumblenav.estimators.hu2024.tuning import HuTuning
+from tumblenav.frontends import stereo_points
+from tumblenav.frontends.inertia import inertia_ratios
+
+Array = NDArray[np.float64]
+
+
+def _rotation_window(
+    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float
+) -> tuple[NDArray[np.int64], Array, Array] | None:
+    """The start batches' data window: the epochs ``j`` of the first ``window_s`` of G
+    attitudes up to epoch k (causal), R_LG there (m,3,3) and the Hill (CW) position rows
+    ``Phi`` (m,3,6) of the mass centre's ``[r_0, v_0]``; None with fewer than 10 epochs."""
+    from tumblenav.dynamics.relative_orbit import cw_stm
+
+    t = fe.t
+    have = np.flatnonzero(np.all(np.isfinite(fe.R_GI[b, : k + 1]), axis=(-1, -2)))
+    if len(have) < 10:
+        return None
+    j = have[t[have] <= t[have[0]] + window_s]
+    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)
+    return j, R_LG, cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]
+
+
+def mass_centre_from_rotation(
+    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
+) -> tuple[Array, Array] | None:
+    """Batch least squares for the mass centre before the filter starts (beyond Hu 2024).
+
+    Every feature seen at epoch j obeys ``p_L,i(j) = r(j) + R_LG(j) (g_i - c_G)``, with the G
+    template ``g_i``, the measured G attitude ``R_LG = R_LI R_GI^T``, the constant mass centre
+    ``c_G`` in G and the mass-centre position ``r(j) = Phi_CW(t_j - t_0) [r_0; v_0]`` (Hill,
+    Hu 2024 eq. 4-5, no disturbance over the window). That is linear in ``[r_0, v_0, c_G]``;
+    the rotation of the target separates ``c_G`` from the translation.
+
+    The window is the first ``window_s`` of G attitudes (the closest, most precise data),
+    ending at epoch k at the latest (causal). Each point is weighted by the inverse of its
+    triangulation covariance plus what the G attitude error ``cov_G`` does to it
+    (``R_LG [(g_i - c) x] cov_G [(g_i - c) x]^T R_LG^T``, at the centroid, then at the first
+    solution); the covariance is scaled by the reduced chi-square when that exceeds one.
+
+    Returns ``(c_G, cov_c_G)``, or None when the window holds too little rotation to tell
+    ``c_G`` (its 1-sigma above 0.5 m).
+    """
+    window = _rotation_window(fe, b, k, n_orbit, window_s)
+    if window is None:
+        return None
+    j, R_LG, Phi = window
+    use = fe.usable[b, j] & fe.known_at[b, k][None, :]
+    if use.sum() < 12:
+        return None
+    g = np.nan_to_num(fe.template_at(k)[b])  # (N,3), as known at k
+    jj, ii = np.nonzero(use)
+    d = fe.p_L[b, j[jj], ii] - (R_LG[jj] @ g[ii][..., None])[..., 0]  # (M,3)
+    A = np.concatenate([Phi[jj], -R_LG[jj]], axis=2)  # (M,3,9)
+    c = np.mean(g[fe.known_at[b, k]], axis=0)
+    for _ in range(2):
+        lever = R_LG[jj] @ rot.skew(g[ii] - c)  # d error per G attitude error (in G)
+        C = fe.cov_L[b, j[jj], ii] + lever @ fe.cov_G[b, j[jj]] @ np.swapaxes(lever, -1, -2)
+        try:
+            W = np.linalg.inv(C)  # (M,3,3)
+            AtW = np.swapaxes(A, -1, -2) @ W
+            N = np.sum(AtW @ A, axis=0)
+            rhs = np.sum(AtW @ d[..., None], axis=0)[:, 0]
+            Ninv = np.linalg.inv(N)
+        except np.linalg.LinAlgError:  # degenerate data: keep the centroid guess
+            return None
+        if not (np.all(np.isfinite(Ninv)) and np.all(np.isfinite(rhs))):
+            return None
+        x = Ninv @ rhs
+        c = x[6:]
+    res = d - (A @ x[:, None])[..., 0]
+    chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
+    dof = max(3 * len(d) - 9, 1)
+    cov_c = Ninv[6:, 6:] * max(1.0, chi2 / dof)
+    if not np.all(np.isfinite(cov_c)) or np.sqrt(np.max(np.linalg.eigvalsh(cov_c))) > 0.5:
+        return None
+    return c, cov_c
+
+
+def features_from_rotation(
+    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
+) -> tuple[Array, Array, NDArray[np.bool_]] | None:
+    """Joint batch least squares for the features about the mass centre (beyond Hu 2024).
+
+    The model of :func:`mass_centre_from_rotation` with the features' coordinates about the
+    mass centre, ``f_i = g_i - c_G`` (in G), as unknowns instead of the template ``g_i`` of
+    one sighting: ``p_L,i(j) = Phi_CW(t_j - t_0) [r_0; v_0] + R_LG(j) f_i``, linear in
+    ``[r_0, v_0, f_1 .. f_N]``. With the template fixed, its errors (those of one stereo
+    sighting: 8 mm deep at 17 m, 2e-5 rad) could only be absorbed by ``c_G`` and the fit put
+    the mass centre 6 mm off (median) with a 1-sigma below 1 mm (hu2024), 97 mm off in a
+    slower tumble (benchmarks/hu2024_mass_centre.py); here every feature is fitted to all its views in the window, so the template's
+    errors do not enter, and the features come out refined over the views (their depth error
+    averaged over the tumble) with an honest joint covariance.
+
+    The window and the weights are those of :func:`mass_centre_from_rotation` (the lever arm
+    of the G attitude error is ``f_i``). Returns ``(f_G, cov_f, fitted)``: ``f_G`` (N,3) and
+    ``cov_f`` (3N,3N) in G, for the features seen in the window (``fitted``); or None when
+    the mass centre is not determined (the 1-sigma of the features' common shift above
+    0.5 m: too little rotation in the window) or too few points.
+    """
+    N = fe.usable.shape[2]
+    window = _rotation_window(fe, b, k, n_orbit, window_s)
+    if window is None:
+        return None
+    j, R_LG, Phi = window
+    g = fe.template_at(k)[b]  # as known at k (the initial lever arms)
+    kn = fe.known_at[b, k]
+    out = stereo_points.joint_features(
+        Phi,
+        R_LG,
+        fe.p_L[b, j],
+        fe.cov_L[b, j],
+        fe.cov_G[b, j],
+        fe.usable[b, j] & kn[None, :],
+        g - np.nanmean(g[kn], axis=0),
+    )
+    if out is None:
+        return None
+    _, f, cov, idx = out
+    # the features' common shift (a mass centre error) must be determined
+    nf = len(idx)
+    S = np.kron(np.ones((1, nf)) / nf, np.eye(3))
+    if np.sqrt(np.max(np.linalg.eigvalsh(S @ cov @ S.T))) > 0.5:
+        return None
+    f_G = np.full((N, 3), np.nan)
+    f_G[idx] = f
+    cov_f = np.zeros((3 * N, 3 * N))
+    sel = (3 * idx[:, None] + np.arange(3)).ravel()
+    cov_f[np.ix_(sel, sel)] = cov
+    fitted = np.zeros(N, dtype=bool)
+    fitted[idx] = True
+    return f_G, cov_f, fitted
+
+
+@dataclass
+class _Init:
+    k0: NDArray[np.int64]  # (B,) first filter epoch (-1: never)
+    x0: Array  # (B, nom)
+    P0: Array  # (B, d, d)
+
+
+def refine_start_pose(
+    p: Array, cov: Array, f: Array, q: Array, r: Array, R_LI: Array, iters: int = 20
+) -> tuple[Array, Array, Array] | None:
+    """Gauss-Newton fit of the attitude ``q`` (q_TI) and position ``r`` (in L) to one epoch's
+    feature points ``p`` (M, 3) in L with covariances ``cov`` (M, 3, 3), given the features
+    ``f`` (M, 3) in T: minimises ``sum_i |p_i - r - R_LT(q) f_i|^2`` in the metric of
+    ``cov_i`` (the measurement model of Hu 2024 eq. 32-35), with ``q <- exp(dtheta) q`` and
+    the Jacobian ``[R_LT [f_i x], I]`` (the filter's). Returns the refined ``q``, ``r`` and
+    the 6x6 covariance of ``(dtheta, dr)``, or None if the fit is not determined (fewer than
+    three points, singular) or does not lower the cost.
+
+    Why (beyond the paper): the filter used to start from the DPACF attitude of one epoch,
+    whose G attitude comes from an isotropically weighted alignment (Kabsch) of the same
+    points; at 150-190 m with a 1 m baseline the depth error (0.5 m) dwarfs the lateral one
+    (3 mm) and that attitude is off by tens of degrees, while the first update, linearised
+    there, claimed a few degrees. With the full covariances the lateral precision fixes the
+    attitude to a fraction of a degree, and iterating removes the linearisation error."""
+    W = np.linalg.inv(cov)
+    M = len(p)
+    if M < 3:
+        return None
+
+    def cost_and_normal(q_, r_):
+        R_LT = R_LI @ rot.quat_to_matrix(q_).T
+        y = p - r_ - f @ R_LT.T
+        H = np.zeros((M, 3, 6))
+        H[:, :, :3] = R_LT @ rot.skew(f)
+        H[:, :, 3:] = np.eye(3)
+        HtW = np.swapaxes(H, -1, -2) @ W
+        A = np.sum(HtW @ H, axis=0)
+        g = np.sum(HtW @ y[..., None], axis=0)[:, 0]
+        c = float(np.sum(y[:, None, :] @ W @ y[..., None]))
+        return c, A, g
+
+    c0, A, g = cost_and_normal(q, r)
+    qk, rk, ck = q, r, c0
+    for _ in range(iters):
+        try:
+            d = np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(d)):
+            return None
+        qn = rot.quat_multiply(rot.exp_quat(d[:3]), qk)
+        rn = rk + d[3:]
+        cn, An, gn = cost_and_normal(qn, rn)
+        if not cn <= ck * (1 + 1e-12):
+            break
+        qk, rk, ck, A, g = qn, rn, cn, An, gn
+        if np.linalg.norm(d[:3]) < 1e-10:
+            break
+    if not (ck <= c0 and np.all(np.isfinite(A))) or np.linalg.cond(A) > 1e12:
+        return None
+    return qk, rk, np.linalg.inv(A)
+
+
+def _initial_state(
+    fe: stereo_points.PointsFrontEnd,
+    tun: HuTuning,
+    use_dpacf: bool,
+    lay: StateLayout,
+    n_orbit: float = 0.0,
+    frame_in_P0: bool = True,
+    refine: bool = False,
+) -> _Init:
+    B, n, N = fe.usable.shape
+    ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
+    ready &= fe.usable.sum(axis=-1) >= 3  # fe: the filter's view (filter_view), gated frames
+    if tun.max_ratio_sigma is not None:  # both estimators, so that they start together
+        var_p = np.nan_to_num(np.diagonal(fe.cov_ratios, axis1=-2, axis2=-1), nan=np.inf)
+        ratios_ok = np.sqrt(var_p.max(axis=-1)) < tun.max_ratio_sigma
+        # ... but not for longer than max_ratio_wait_s after the frame became good enough
+        t_ready = np.where(ready.any(axis=1), fe.t[np.argmax(ready, axis=1)], np.inf)
+        waited = fe.t[None, :] >= t_ready[:, None] + tun.max_ratio_wait_s
+        ready &= ratios_ok | waited
+    k0 = np.where(ready.any(axis=1), np.argmax(ready, axis=1), -1)
+    x0 = np.zeros((B, lay.nominal_dim))
+    P0 = np.zeros((B, lay.dim, lay.dim))
+    for b in range(B):
+        k = k0[b]
+        if k < 0:
+            continue
+        R_GI = fe.R_GI[b, k]
+        if use_dpacf:
+            R_TG = fe.R_GT[b, k].T
+            q = fe.q_TI[b, k]
+            p = inertia_ratios(fe.moments[b, k])
+            cov_att = fe.cov_TI[b, k] - fe.cov_frame[b, k]  # white part (G attitude)
+            cov_frame = fe.cov_frame[b, k]
+        else:  # Aghili & Parsa-style start: T := G, spherical inertia, large attitude sigma
+            R_TG = np.eye(3)
+            q = rot.matrix_to_quat(R_GI)
+            p = np.zeros(3)
+            cov_att = 1e-6 * np.eye(3)
+            cov_frame = tun.p0_attitude_rad**2 * np.eye(3)
+        R_LT = _R_LI_at(fe, b, k) @ rot.quat_to_matrix(q).T
+        u = fe.usable[b, k]
+        kn = fe.known_at[b, k]  # catalogued by the start (causal)
+        g = fe.template_at(k)[b]  # as known at the start
+        gbar = np.nanmean(g[kn], axis=0)  # mass centre guess: the feature centroid
+        Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
+        joint = None  # (f_G, cov_f, fitted) of features_from_rotation
+        if tun.mass_centre_init == "rotation":
+            batch = mass_centre_from_rotation(fe, b, k, n_orbit)
+            if batch is not None:
+                gbar, cov_c = batch
+                floor = tun.p0_mass_centre_floor_m**2 * np.eye(3)
+                Sc = R_TG @ (cov_c + floor) @ R_TG.T
+        elif tun.mass_centre_init == "joint":
+            joint = features_from_rotation(fe, b, k, n_orbit)
+            if joint is not None:
+                fit_kn = joint[2] & kn
+                gbar = np.mean(g[fit_kn] - joint[0][fit_kn], axis=0)  # mass centre in G
+                Sc = tun.p0_mass_centre_floor_m**2 * np.eye(3)  # common floor (in T)
+        fG = np.nan_to_num(g - gbar)  # features about the mass centre, in G
+        if joint is not None:
+            fG = np.where(fit_kn[:, None], joint[0], fG)
+        f = np.where(kn[:, None], (R_TG @ fG.T).T, 0.0)
+        # r such that the predicted features match the measured ones on average:
+        # r = mean_i (p_L,i - R_LT f_i) over the visible, catalogued features (weighted)
+        use = u & kn
+        wts = np.where(use, 1.0 / np.trace(fe.cov_L[b, k], axis1=-2, axis2=-1), 0.0)
+        resid = np.nan_to_num(fe.p_L[b, k]) - f @ R_LT.T
+        r0 = np.sum(wts[:, None] * resid, 0) / wts.sum()
+        C6 = None  # covariance of (attitude, position) from the refined start
+        if refine:
+            fit = refine_start_pose(
+                fe.p_L[b, k, use],
+                fe.cov_L[b, k, use] + 1e-4 * np.eye(3),  # + the features' own 1 cm (below)
+                f[use],
+                q,
+                r0,
+                _R_LI_at(fe, b, k),
+            )
+            if fit is not None:
+                q, r0, C6 = fit
+                R_LT = _R_LI_at(fe, b, k) @ rot.quat_to_matrix(q).T
+        w = R_TG @ fe.omega_G[b, k]
+        # velocity: with mass_centre_init 'rotation' or 'joint', of the mass centre, by
+        # differencing at k and k - h the point ``p_L,i - R_LG f_G,i`` (f_G,i = g_i - gbar,
+        # or the joint fit's feature) of the features seen at both
+        # (the centroid's velocity adds omega x (centroid - mass centre)); else of the
+        # centroid of the features seen at both
+        h = min(tun.frontend.rate_half_window * 2, k)
+        common = u & fe.usable[b, k - h] & kn if h > 0 else u
+        G_ok = (
+            tun.mass_centre_init in ("rotation", "joint")
+            and h > 0
+            and bool(np.all(np.isfinite(fe.R_GI[b, [k, k - h]])))
+        )
+        if G_ok and common.sum() >= 3:
+            gc = fG[common]
+            cen = [
+                np.mean(fe.p_L[b, j, common] - gc @ (fe.R_LI[b, j] @ fe.R_GI[b, j].T).T, axis=0)
+                for j in (k, k - h)
+            ]
+            v = (cen[0] - cen[1]) / (fe.t[k] - fe.t[k - h])
+        elif h > 0 and (u & fe.usable[b, k - h]).sum() >= 3:
+            both = u & fe.usable[b, k - h]
+            v = (fe.p_L[b, k, both].mean(0) - fe.p_L[b, k - h, both].mean(0)) / (
+                fe.t[k] - fe.t[k - h]
+            )
+        else:
+            v = np.zeros(3)
+        x0[b, lay.nom("attitude")] = q
+        x0[b, lay.nom("rate")] = w
+        x0[b, lay.nom("inertia")] = p
+        x0[b, lay.nom("position")] = r0
+        x0[b, lay.nom("velocity")] = v
+        x0[b, lay.nom("features")] = f.ravel()
+        # covariance: the unknown mass-centre offset c (in T) correlates r and every f_i:
+        # r = r0 + R_LT c, f_i = f0_i - c.
+        P = np.zeros((lay.dim, lay.dim))
+        P[lay.err("attitude"), lay.err("attitude")] = cov_att if C6 is None else C6[:3, :3]
+        var_w = tun.p0_rate_rad_s**2
+        if refine:  # plus the variance of the front end's rate (0.1 rad/s at 190 m, 2e-5 rad)
+            var_w += float(np.nan_to_num(fe.var_omega[b, k]))
+        P[lay.err("rate"), lay.err("rate")] = var_w * np.eye(3)
+        # the ratios: for ekf-dpacf the least-squares covariance of the front end's ratios
+        # at the start (beyond the paper; a start 0.29 off with sigma 0.077 was seen) plus
+        # p0_inertia^2; ekf-baseline starts from a sphere with sigma 0.5
+        P[lay.err("inertia"), lay.err("inertia")] = (
+            tun.p0_inertia**2 * np.eye(3) + np.nan_to_num(fe.cov_ratios[b, k])
+            if use_dpacf
+            else 0.5**2 * np.eye(3)
+        )
+        sr = lay.err("position")
+        P[sr, sr] = R_LT @ Sc @ R_LT.T
+        sf0 = lay.err("features").start
+        if joint is not None:
+            # features: the joint fit's covariance (in T) plus the common floor Sc and 1 cm
+            # each (as below); r0 = sum_i w_i (p_L,i - R_LT f_i) / sum w, so its error is
+            # -R_LT W f_err with W = [w_i I] / sum w
+            F = np.zeros((3 * N, 3 * N))
+            RT = np.kron(np.eye(N), R_TG)
+            F[:] = (
+                RT
+                @ np.where(
+                    np.repeat(fit_kn, 3)[:, None] & np.repeat(fit_kn, 3)[None], joint[1], 0.0
+                )
+                @ RT.T
+            )
+            kn3 = np.repeat(kn, 3)
+            F += np.where(kn3[:, None] & kn3[None], np.kron(np.ones((N, N)), Sc), 0.0)
+            F += np.kron(np.diag(np.where(kn, 1e-4, tun.p0_unseen_feature_m**2)), np.eye(3))
+            Wr = np.kron((wts / wts.sum())[None, :], np.eye(3))  # (3, 3N)
+            sfe = lay.err("features")
+            P[sfe, sfe] = F
+            P[sr, sr] = R_LT @ Wr @ F @ Wr.T @ R_LT.T
+            P[sr, sfe] = -R_LT @ Wr @ F
+            P[sfe, sr] = P[sr, sfe].T
+        if C6 is not None:
+            sa = lay.err("attitude")
+            P[sr, sr] += C6[3:, 3:]
+            P[sa, sr] = C6[:3, 3:]
+            P[sr, sa] = C6[3:, :3]
+        P[lay.err("velocity"), lay.err("velocity")] = tun.p0_velocity_m_s**2 * np.eye(3)
+        for i in range(N if joint is None else 0):
+            si = slice(sf0 + 3 * i, sf0 + 3 * i + 3)
+            if kn[i]:
+                P[si, sr] = -Sc @ R_LT.T
+                P[sr, si] = -R_LT @ Sc
+                for j in range(N):
+                    if kn[j]:
+                        sj = slice(sf0 + 3 * j, sf0 + 3 * j + 3)
+                        P[si, sj] = Sc
+                P[si, si] = Sc + 1e-4 * np.eye(3)
+            else:
+                P[si, si] = tun.p0_unseen_feature_m**2 * np.eye(3)
+        # The principal frame itself is uncertain (DPACF error, or unknown for the baseline):
+        # a rotation u of the frame moves the attitude by u and rotates the rate and every
+        # feature (frame_jacobian; unseen features are at 0). With the 'consider' frame
+        # model the filter works in the front end's frame and adds this when it reports.
+        if frame_in_P0:
+            Ju = frame_jacobian(x0[b][None], lay)[0]
+            P += Ju @ cov_frame @ Ju.T
+        P0[b] = 0.5 * (P + P.T)
+    return _Init(k0=k0, x0=x0, P0=P0)
+
+
+def _R_LI_at(fe: stereo_points.PointsFrontEnd, b: int, k: int) -> Array:
+    return fe.R_LI[b, k]
