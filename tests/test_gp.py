@@ -10,7 +10,7 @@ from scipy import linalg
 from threadpoolctl import threadpool_limits
 
 from tumblenav.errors import InputError
-from tumblenav.estimators import gp
+from tumblenav.estimators.kabir2025 import gp
 
 P_TRUE = (97.0, 13.3)  # s, the two periods of the synthetic series below
 NOISE = 0.01  # white noise std of the synthetic series (data units)

@@ -13,8 +13,9 @@ from threadpoolctl import threadpool_limits
 
 from tumblenav import dynamics
 from tumblenav.campaign.store import run_seed
-from tumblenav.estimators import base, ukf_gp
+from tumblenav.estimators import base
 from tumblenav.estimators import ukf as U
+from tumblenav.estimators.kabir2025 import ukf_gp
 from tumblenav.evaluation import alignment, metrics
 from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario

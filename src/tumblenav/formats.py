@@ -255,8 +255,9 @@ def tuning_table(model: Any, only: Iterable[str] | None = None) -> str:
 def tuning_sections() -> dict[str, str]:
     """The ``estimator.tuning`` tables, read off the estimators' tuning models, so that the
     documented defaults are the ones used."""
-    from tumblenav.estimators import ekf_depth, ukf, ukf_gp
+    from tumblenav.estimators import ekf_depth, ukf
     from tumblenav.estimators.hu2024 import tuning as hu_tuning
+    from tumblenav.estimators.kabir2025 import ukf_gp
     from tumblenav.frontends.stereo_points import StereoPointsTuning
 
     hu, base = hu_tuning.HuTuning, hu_tuning.BaselineTuning

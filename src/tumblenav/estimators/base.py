@@ -305,7 +305,7 @@ def _load_builtin() -> None:
     value: ``module:factory``, a callable returning the estimator). A plugin that fails to
     import is left out and its error kept in :data:`PLUGIN_ERRORS` (``tumblenav estimators``
     shows it); a plugin never replaces a built-in estimator."""
-    from tumblenav.estimators import ekf_depth, hu2024, ukf, ukf_gp  # noqa: F401
+    from tumblenav.estimators import ekf_depth, hu2024, kabir2025  # noqa: F401
 
     if _PLUGINS or PLUGIN_ERRORS:
         return

@@ -31,8 +31,8 @@ from tumblenav.campaign import runner
 from tumblenav.campaign.store import CampaignStore
 from tumblenav.dynamics import polhode_period
 from tumblenav.errors import InputError
-from tumblenav.estimators import gp as gpm
-from tumblenav.estimators import ukf
+from tumblenav.estimators import ukf  # the kabir2025 package's names, re-exported
+from tumblenav.estimators.kabir2025 import gp as gpm
 from tumblenav.frontends import projections as proj
 from tumblenav.measurements import StereoMeasurements
 from tumblenav.pipeline import run_montecarlo

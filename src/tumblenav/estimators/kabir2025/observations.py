@@ -1,0 +1,71 @@
+"""Kabir 2025's observations: the stereo projection, disparity and optical-flow model (eq. 16-27)
+and the measurements and their variances prepared from stereo tracks."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav import rotations as rot
+from tumblenav.errors import InputError
+from tumblenav.estimators.kabir2025.tuning import KabirTuning
+from tumblenav.frontends import projections as proj
+
+Array = NDArray[np.float64]
+Variant = Literal["additive", "mult"]
+
+
+def measurement_model(
+    x: Array, R_CI: Array, rho0_C: Array, rho0_dot_C: Array, centres_x: Array
+) -> Array:
+    """Kabir 2025 eq. 22-23 for states ``x`` (..., nominal): (..., N, 9).
+
+    ``rho_i = rho0_C + R_CI R_IT p_i`` (eq. 4 in C), ``omega_C = R_CI R_IT omega_TI_T``; the
+    quaternion need not be unit (it is normalised in the rotation matrix).
+    """
+    R_CT = R_CI @ np.swapaxes(rot.quat_to_matrix_fast(x[..., 3:7]), -1, -2)
+    p = x[..., 9:].reshape(x.shape[:-1] + (-1, 3))
+    rho = rho0_C[..., None, :] + p @ np.swapaxes(R_CT, -1, -2)
+    omega_C = (R_CT @ x[..., 0:3, None])[..., 0]
+    return proj.kabir_h(rho, rho0_C, omega_C, centres_x, rho0_dot_C)
+
+
+def projection_sigmas(tun: KabirTuning, meas: Any) -> tuple[float, float]:
+    """``(sigma_p, sigma_d)`` (rad) of Kabir 2025 eq. 24: as given in the tuning, or by its
+    rules (``'sensor'``: the measurements' ``noise_px / focal_px``; ``'sigma_p'``)."""
+    sp = tun.sigma_p_rad
+    if sp == "sensor":
+        sp = float(meas.noise_px) / float(meas.rig.left.focal_px)
+        if not sp > 0:
+            raise InputError(
+                "the sensor noise is zero or unknown: set estimator.tuning.sigma_p_rad"
+            )
+    sd = sp if tun.sigma_d_rad == "sigma_p" else tun.sigma_d_rad
+    return sp, sd
+
+
+def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[Array, Array]:
+    """``z`` (n, N, 9) and its variances (n, N, 9) from pixel measurements.
+
+    ``z_i = [u_R, v_R, u_L, v_L, u_L - u_R, du_R, dv_R, du_L, dv_L]`` from
+    :func:`~tumblenav.frontends.projections.normalised` and the flow by
+    :func:`~tumblenav.frontends.projections.finite_difference_rate` (Kabir 2025 eq. 27) of the
+    measured projections (by default only where eq. 27 is fourth order, see ``flow_edges``);
+    NaN where not available.  Variances: ``sigma_p^2``, ``sigma_d^2``
+    (:func:`projection_sigmas`) and ``sigma_flow^2`` (Kabir 2025 eq. 24-25, diagonal).
+    """
+    tun = tuning or KabirTuning()
+    t = np.asarray(meas.t, dtype=float)
+    dts = np.diff(t)
+    if len(t) < 2 or np.ptp(dts) > 1e-9 * max(1.0, float(np.abs(dts).max())):
+        raise InputError("Kabir 2025's finite differences need uniformly sampled measurements")
+    w, _ = proj.normalised(meas)
+    flow = proj.finite_difference_rate(w, float(dts[0]))
+    if tun.flow_edges == "drop":
+        flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
+    z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
+    sp, sd = projection_sigmas(tun, meas)
+    var = np.array([sp**2] * 4 + [sd**2] + [tun.sigma_flow_rad_s**2] * 4)
+    return z, np.broadcast_to(var, z.shape).copy()
