@@ -79,9 +79,9 @@ def skew(v: ArrayLike) -> Array:
 
 def quat_normalize(q: ArrayLike) -> Array:
     """Unit quaternion with non-negative scalar part (the canonical sign of the double cover)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0.0, -q, q)
+    qa = np.asarray(q, dtype=float)
+    u = qa / np.linalg.norm(qa, axis=-1, keepdims=True)
+    return np.where(u[..., 3:4] < 0.0, -u, u)
 
 
 def quat_conjugate(q: ArrayLike) -> Array:
@@ -103,9 +103,9 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> Array:
 
 def quat_to_matrix(q: ArrayLike) -> Array:
     """Rotation matrix ``R_AB`` of ``q_AB`` (same as scipy's ``as_matrix``); shape (..., 3, 3)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    qa = np.asarray(q, dtype=float)
+    u = qa / np.linalg.norm(qa, axis=-1, keepdims=True)
+    x, y, z, w = u[..., 0], u[..., 1], u[..., 2], u[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z

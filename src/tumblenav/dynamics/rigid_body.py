@@ -21,6 +21,7 @@ take the *parameter* ``m = k^2``.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -168,7 +169,8 @@ def euler_rhs(omega_T: ArrayLike, inertia: ArrayLike) -> Array:
     J = _as_inertia_matrix(J)
     h = w @ J.T  # I w for stacks
     torque = -np.cross(w, h)
-    return np.linalg.solve(J, torque[..., None])[..., 0]
+    # cast: numpy's stubs type linalg results of float input as floating[Any] (float64 here)
+    return cast(Array, np.linalg.solve(J, torque[..., None])[..., 0])
 
 
 def euler_coefficients(moments: ArrayLike) -> Array:
@@ -266,7 +268,7 @@ def propagate_attitude(
         c1, c2, c3 = (i2 - i3) / i1, (i3 - i1) / i2, (i1 - i2) / i3
         k1, k2, k3 = (float(x) for x in np.diag(K))
 
-        def rhs(_t: float, y: Array) -> list[float]:
+        def rhs(_t: float, y: Array) -> list[float] | Array:
             qx, qy, qz, qw, wx, wy, wz = y
             ux, uy, uz = k1 * wx, k2 * wy, k3 * wz
             # dq_TP/dt = -1/2 [u; 0] (x) q_TP  (rotations.quat_derivative, written out)
@@ -282,7 +284,7 @@ def propagate_attitude(
     else:
         Jinv = np.linalg.inv(Jm)
 
-        def rhs(_t: float, y: Array) -> Array:
+        def rhs(_t: float, y: Array) -> list[float] | Array:
             q, w = y[:4], y[4:]
             u = K @ w
             dq = -0.5 * np.array(

@@ -150,7 +150,8 @@ class Steps(Protocol):
     - ``report(belief, k) -> P``: the covariance to report (usually ``belief.P``).
     """
 
-    layout: StateLayout
+    @property
+    def layout(self) -> StateLayout: ...  # read-only: the steps may be frozen dataclasses
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]: ...
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -184,6 +184,7 @@ class DepthTuning(BaseModel):
     def _number_or_rule(cls, v: Any, info: ValidationInfo) -> Any:
         """A positive number, or the rule named by the default (``null``, the former default,
         means the rule too)."""
+        assert info.field_name is not None  # a field validator's info names its field
         rule = cls.model_fields[info.field_name].default
         if v is None or v == rule:
             return rule
@@ -212,7 +213,8 @@ def physical_inertia(l: Array) -> bool:
 def euler_full(w: Array, l: Array) -> Array:
     """Yu 2019 eq. 28: ``omega' = I^-1 (-omega x I omega)``."""
     I = inertia_matrix(l)
-    return np.linalg.solve(I, -np.cross(w, I @ w))
+    # cast: numpy's stubs type linalg results of float input as floating[Any] (float64 here)
+    return cast(Array, np.linalg.solve(I, -np.cross(w, I @ w)))
 
 
 def rotational_F(w: Array, l: Array) -> Array:
@@ -368,7 +370,7 @@ def measurement(x: Array, R_LI: Array) -> tuple[Array, Array]:
 
 class DepthEKF:
     name = "ekf-depth"
-    consumes = (DEPTH_CLOUDS,)  # the measurement types it runs on
+    consumes: tuple[str, ...] = (DEPTH_CLOUDS,)  # the measurement types it runs on
     needs = "depth point clouds (depth sensor) and a target model with known rectangles"
     description = "Yu 2019: RANSAC rectangles -> coarse pose -> EKF with mass-centre offset"
 

@@ -109,7 +109,9 @@ def consistent_start(fixes: list[PoseFix]) -> tuple[Array, Array]:
     for R, p in fixes[0].candidates:
         s = 0.0
         for other in fixes[1:]:
-            s += min(np.linalg.norm(R - R2) + np.linalg.norm(p - p2) for R2, p2 in other.candidates)
+            s += float(
+                min(np.linalg.norm(R - R2) + np.linalg.norm(p - p2) for R2, p2 in other.candidates)
+            )
         if s < score:
             best, score = (R, p), s
     return best

@@ -318,7 +318,7 @@ def solve(state: InertiaAccumulator) -> InertiaEstimate:
         return _nan_estimate(state.n_epochs)
     X = s * np.linalg.solve(Ns, s * state.r)
     sse = state.bb - 2.0 * X @ state.r + X @ state.N @ X
-    rms = float(np.sqrt(max(sse, 0.0) / (3.0 * state.weight)))
+    rms = float(np.sqrt(max(float(sse), 0.0) / (3.0 * state.weight)))
     I_bar, H = _unpack(X)
     return InertiaEstimate(_readonly(I_bar), _readonly(H), rms, cond, float(state.n_epochs))
 
@@ -494,7 +494,7 @@ def branch_statistics(R_GT: ArrayLike, cov_frame: ArrayLike) -> tuple[Array, Arr
     R_TG = np.swapaxes(R, -1, -2)
     r1, r2 = R[..., :, 0], R[..., :, 1]
 
-    def gradient(axis_G: Array) -> Array:  # a = R_TG axis_G, and its sigma
+    def gradient(axis_G: Array) -> tuple[Array, Array]:  # a = R_TG axis_G, and its sigma
         a = (R_TG @ axis_G[..., None])[..., 0]
         return a, np.sqrt(np.maximum(np.einsum("...i,...ij,...j->...", a, C, a), 0.0))
 

@@ -141,6 +141,9 @@ class PointsFrontEnd:
     # for each version in order, the first from epoch 0, the last being template_G (a
     # refinement's epoch is n in runs where it did not happen); None: never refined
     template_history: list[tuple[NDArray[np.int64], Array]] | None = None
+    # (B,n,3,3) attitude of L in I per run and epoch; set by the caller that holds the
+    # measurements (tumblenav.estimators.hu2024.filter.frontend), None until then
+    R_LI: Array | None = None
 
     def template_at(self, k: int | NDArray[np.int64]) -> Array:
         """The template (B,N,3) as known at epoch ``k`` (scalar or per run): the latest
@@ -277,7 +280,9 @@ def weighted_kabsch(
     return R_GC, o, cov_G, ok
 
 
-def _best_triplet_batch(p: Array, usable: NDArray[np.bool_]) -> tuple[Array, NDArray[np.bool_]]:
+def _best_triplet_batch(
+    p: Array, usable: NDArray[np.bool_]
+) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
     """Per run, the visible triplet with the largest smallest-altitude; (B,3) indices."""
     B, N, _ = p.shape
     trip = np.array(list(combinations(range(N), 3))) if N >= 3 else np.zeros((0, 3), int)
@@ -370,7 +375,9 @@ def photogrammetric_frames(
     # catalogued by then (Kabsch), so G is kept through occlusions of the defining triplet.
     use = usable & known_at
     if stop_after > 0:
-        first = np.where(known_at.any(axis=2).any(axis=1), np.argmax(known_at.any(axis=2), 1), n)
+        first = np.where(
+            np.any(known_at, axis=2).any(axis=1), np.argmax(known_at.any(axis=2), 1), n
+        )
         stop = -(-(first + stop_after) // stop_every) * stop_every
         use &= (np.arange(n)[None, :] < stop[:, None])[..., None]
         if info is not None:
@@ -872,7 +879,9 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     h = s.rate_half_window
     n = len(t)
     full = s.g_fit == "full"
-    steps = np.atleast_1d(np.asarray(s.template_refine_s, dtype=float)) if full else []
+    steps: Array | list[float] = (
+        np.atleast_1d(np.asarray(s.template_refine_s, dtype=float)) if full else []
+    )
     n_first = int(round(min([x for x in steps if x > 0], default=0.0) / dt))
     info: dict = {}
     R_GC, cov_G, template, known, known_at = photogrammetric_frames(

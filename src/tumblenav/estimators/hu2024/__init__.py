@@ -52,7 +52,7 @@ __all__ = ["HuEKF", "histories", "parse_tuning", "run_filter"]
 class HuEKF:
     """Shared implementation of ekf-dpacf and ekf-baseline."""
 
-    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
+    consumes: tuple[str, ...] = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = "stereo feature tracks (stereo sensor)"
     compiled = True  # numba kernels: campaigns warm them up before forking their workers
 

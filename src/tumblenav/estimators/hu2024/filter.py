@@ -187,14 +187,13 @@ def run_filter(
 def _run_view(fe: stereo_points.PointsFrontEnd, b: int) -> stereo_points.PointsFrontEnd:
     """Run ``b`` of a batched front end, as a batch of one (the arrays keep their run axis)."""
     B = fe.usable.shape[0]
-    upd = {}
+    upd: dict[str, Any] = {}
     for f in dataclasses.fields(fe):
         v = getattr(fe, f.name)
         if f.name != "t" and isinstance(v, np.ndarray) and v.ndim and v.shape[0] == B:
             upd[f.name] = v[b : b + 1]
     upd["skipped"] = {k: np.asarray(v)[b : b + 1] for k, v in fe.skipped.items()}
-    view = dataclasses.replace(fe, **upd)
-    view.R_LI = fe.R_LI[b : b + 1]
+    view = dataclasses.replace(fe, **upd)  # R_LI (B,n,3,3) among the fields cut to run b
     return view
 
 
@@ -368,8 +367,7 @@ def filter_view(
         cov_ratios=np.where(keep[..., None, None], fe.cov_ratios, np.nan),
         R_GT=np.where(keep[..., None, None], fe.R_GT, np.nan),
         moments=np.where(keep[..., None], fe.moments, np.nan),
-    )
-    view.R_LI = fe.R_LI
+    )  # R_LI kept
     return view
 
 

@@ -102,6 +102,7 @@ def frame_consider_cov(
     _, D2 = _turn_moments(x, np.zeros((B, 3)), C, lay)
     out = P + D2
     if p_turn is not None:
+        assert mu_turn is not None and S_turn is not None  # the three come together
         out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay)
     return out
 

@@ -33,7 +33,7 @@ def _rotation_window(
     if len(have) < 10:
         return None
     j = have[t[have] <= t[have[0]] + window_s]
-    R_LG = fe.R_LI[b, j] @ np.swapaxes(fe.R_GI[b, j], -1, -2)
+    R_LG = _R_LI_at(fe, b, j) @ np.swapaxes(fe.R_GI[b, j], -1, -2)
     return j, R_LG, cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]
 
 
@@ -308,7 +308,9 @@ def _initial_state(
         if G_ok and common.sum() >= 3:
             gc = fG[common]
             cen = [
-                np.mean(fe.p_L[b, j, common] - gc @ (fe.R_LI[b, j] @ fe.R_GI[b, j].T).T, axis=0)
+                np.mean(
+                    fe.p_L[b, j, common] - gc @ (_R_LI_at(fe, b, j) @ fe.R_GI[b, j].T).T, axis=0
+                )
                 for j in (k, k - h)
             ]
             v = (cen[0] - cen[1]) / (fe.t[k] - fe.t[k - h])
@@ -395,5 +397,6 @@ def _initial_state(
     return _Init(k0=k0, x0=x0, P0=P0)
 
 
-def _R_LI_at(fe: stereo_points.PointsFrontEnd, b: int, k: int) -> Array:
+def _R_LI_at(fe: stereo_points.PointsFrontEnd, b: int, k: int | NDArray[np.intp]) -> Array:
+    assert fe.R_LI is not None  # set by filter.frontend
     return fe.R_LI[b, k]

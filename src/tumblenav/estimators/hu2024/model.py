@@ -112,7 +112,8 @@ def feature_measurement(
     the Jacobian (…,3N,dim) w.r.t. the error state (eq. 35 with the Hamilton sign)."""
     q = x[..., lay.nom("attitude")]
     r = x[..., lay.nom("position")]
-    f = x[..., lay.nom("features")].reshape(x.shape[:-1] + (-1, 3))
+    # annotated: numpy's stubs pick reshape's 0-d overload for a shape built as a tuple sum
+    f: Array = x[..., lay.nom("features")].reshape(x.shape[:-1] + (-1, 3))
     R_LT = R_LI @ np.swapaxes(rot.quat_to_matrix(q), -1, -2)
     y = r[..., None, :] + np.einsum("...ij,...kj->...ki", R_LT, f)
     if not jac:

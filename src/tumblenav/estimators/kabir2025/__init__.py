@@ -95,7 +95,7 @@ Variant = Literal["additive", "mult"]
 class KabirUKF:
     """``ukf`` (Kabir 2025's additive UKF) and ``ukf-mult`` (USQUE-style variant)."""
 
-    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
+    consumes: tuple[str, ...] = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = (
         "stereo feature tracks from a parallel rig, an inertially fixed chaser and the target's "
         "mass-centre position, known (Kabir 2025 Sec. 2.1): estimator.tuning.mass_centre_L_m"

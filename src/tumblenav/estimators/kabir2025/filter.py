@@ -99,7 +99,7 @@ class _UKFModel:
 
     def update(
         self, x: Array, P: Array, k: int, zk: Array, Rk: Array, rows: NDArray[np.bool_]
-    ) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_]]:
+    ) -> tuple[Array, Array, Array, NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
         """Kabir 2025 eq. 22-25 for B runs with epoch ``k``'s measurements ``zk``, variances
         ``Rk`` (B, 9N) where ``rows``; returns x, P, NIS and its dof (B,), the rejected
         features (B,) and the runs repaired."""
@@ -246,7 +246,11 @@ class UKFSteps:
             try:
                 x, P, rep = self.model.predict(belief.x[None], belief.P[None], t - belief.t)
             except np.linalg.LinAlgError:  # update() sees a non-finite state: diverged
-                x, P, rep = np.full((1,) + belief.x.shape, np.nan), belief.P[None], [False]
+                x, P, rep = (
+                    np.full((1,) + belief.x.shape, np.nan),
+                    belief.P[None],
+                    np.array([False]),
+                )
         return Belief(t, x[0], P[0], self.layout, memo=int(rep[0]))
 
     def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
@@ -293,7 +297,7 @@ def _sane(x: Array, P: Array) -> NDArray[np.bool_]:
 
 def _gate(
     S: Array, nu: Array, rows: NDArray[np.bool_], gate: Array, N: int
-) -> tuple[NDArray[np.bool_], Array]:
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     """Per-feature chi-square gate on the 9 (or fewer available) components of each feature."""
     B = S.shape[0]
     r = rows.reshape(B, N, 9)

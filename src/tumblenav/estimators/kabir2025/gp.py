@@ -695,8 +695,13 @@ def _refine_periods(t: Array, Yn: Array, periods: tuple[float, float]) -> tuple[
     lo, hi = _bounds(t, D, np.array(ELL0))[0]
     half = np.minimum(np.exp(x0) / (t[-1] - t[0]), 0.5)  # |d log P| = P |df| <= P / span
     box = np.stack([np.maximum(x0 - half, lo), np.minimum(x0 + half, hi)], axis=1)
+
+    def fg_scaled(z: Array) -> tuple[float, Array]:
+        f, g = fg(z * scale)
+        return f, g * scale
+
     res = optimize.minimize(
-        lambda z: (lambda f, g: (f, g * scale))(*fg(z * scale)),
+        fg_scaled,
         x0 / scale,
         jac=True,
         method="L-BFGS-B",
@@ -868,8 +873,10 @@ def _fit(t, Y, periods_init, candidates, sensor_noise_std, min_span_s, maxiter) 
     Yn = ((Y - mean) / scale) @ rot_  # principal components, common scale
     tc = t - t[0]  # origin at the first sample: keeps the phases well conditioned
     noise0 = _noise_guess(Yn)
+    starts: list[tuple[float, float]]
     if periods_init is not None:
-        starts = [tuple(float(p) for p in periods_init)]
+        P1_init, P2_init = periods_init
+        starts = [(float(P1_init), float(P2_init))]
     else:
         starts = []
         for P1, P2 in fft_period_guess(tc, Yn)[: max(candidates, 1)]:

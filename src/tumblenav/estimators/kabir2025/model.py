@@ -144,7 +144,9 @@ def geometry(scenario: Any, t: Array, meas: Any = None) -> KabirGeometry:
 
     check_scenario(scenario)
     t = np.asarray(t, dtype=float)
-    r0_L, v_L = _mass_centre(scenario)
+    mass_centre = _mass_centre(scenario)
+    assert mass_centre is not None  # check_scenario refuses a scenario without it
+    r0_L, v_L = mass_centre
     r_L = r0_L + np.outer(t, v_L)
     if meas is not None:
         R_CI = rot.quat_to_matrix(rot.quat_multiply(meas.q_CL, meas.q_LI))

@@ -108,6 +108,7 @@ class KabirTuning(BaseModel):
     def _number_or_rule(cls, v: Any, info: ValidationInfo) -> Any:
         """A positive number, or the rule named by the default (``null``, the former default,
         means the rule too)."""
+        assert info.field_name is not None  # a field validator's info names its field
         rule = cls.model_fields[info.field_name].default
         if v is None or v == rule:
             return rule

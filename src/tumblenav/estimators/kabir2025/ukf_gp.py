@@ -162,7 +162,7 @@ def _model_summary(m: gpm.GPFit | str, T_train: float) -> dict[str, Any]:
 
 class KabirUKFGP:
     name = "ukf-gp"
-    consumes = (STEREO_TRACKS,)  # the measurement types it runs on
+    consumes: tuple[str, ...] = (STEREO_TRACKS,)  # the measurement types it runs on
     needs = (
         "as ukf; the GP is trained on each feature's observed epochs and replaces its "
         "measurements wherever it is not observed"

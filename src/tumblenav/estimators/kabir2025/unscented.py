@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,7 +51,8 @@ def _sqrt_psd(P: Array) -> tuple[Array, NDArray[np.bool_]]:
     zeroth weight of the scaled transform can leave a slightly indefinite covariance); NaN for
     a run whose P is not finite.  Returns also which runs were repaired."""
     try:
-        return np.linalg.cholesky(P), np.zeros(P.shape[0], dtype=bool)
+        # cast: numpy's stubs type linalg results of float input as floating[Any] (float64 here)
+        return cast(Array, np.linalg.cholesky(P)), np.zeros(P.shape[0], dtype=bool)
     except np.linalg.LinAlgError:
         pass
     L = np.full_like(P, np.nan)
