@@ -1,0 +1,196 @@
+"""The inertia least squares on the rates of G (Hu 2024 eq. 10-16) and the DPACF frame from\nits solution (eq. 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav.frontends import _points_kernel
+from tumblenav.frontends.inertia import inertia_design, principal_frame
+from tumblenav.frontends.stereo_points.rates import _finite_or_identity, _quats
+from tumblenav.frontends.stereo_points.settings import FrontEndSettings
+
+Array = NDArray[np.float64]
+
+
+def _inertia_from_l(l: Array) -> Array:
+    """Normalised inertia in G from l = [Iyy, Izz, Ixy, Ixz, Iyz] (Ixx = 1), Hu 2024 eq. 9."""
+    one = np.ones(l.shape[:-1])
+    return np.stack(
+        [
+            np.stack([one, l[..., 2], l[..., 3]], -1),
+            np.stack([l[..., 2], l[..., 0], l[..., 4]], -1),
+            np.stack([l[..., 3], l[..., 4], l[..., 1]], -1),
+        ],
+        -2,
+    )
+
+
+_E = np.zeros((5, 3, 3))  # d I_G / d l_j
+
+
+_E[0, 1, 1] = _E[1, 2, 2] = 1.0
+
+
+_E[2, 0, 1] = _E[2, 1, 0] = 1.0
+
+
+_E[3, 0, 2] = _E[3, 2, 0] = 1.0
+
+
+_E[4, 1, 2] = _E[4, 2, 1] = 1.0
+
+
+def identify_and_dpacf(
+    omega_G: Array,
+    var_w: Array,
+    R_GI: Array,
+    cov_G: Array,
+    s: FrontEndSettings,
+    delay: int = 0,
+    cov_w: Array | None = None,
+    R_GI_report: Array | None = None,
+    before: list[tuple] | None = None,
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
+    attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
+    covariance of the inertia ratios (eq. 19). With the covariances of the rates' fit noise
+    ``cov_w`` (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
+    ``1 / var_w``. ``R_GI_report``: the G attitudes of the attitude measurement, if not
+    ``R_GI``. ``before``: a list of ``(omega, var_w, R_GI, cov_w, k_from, k_to)``, the rows of
+    the first epochs (as many as given) as they were between two of the template's
+    refinements: the solutions at epochs ``k_from <= k < k_to`` ((B,) each) use these rows
+    instead of the main ones."""
+    B, n = omega_G.shape[:2]
+    a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
+    # The identification is re-solved every `ls_every` epochs and held in between (the
+    # attitude measurement still uses the G attitude of every epoch).
+    held = (np.arange(n) // s.ls_every) * s.ls_every
+    sel = np.unique(held)
+    # Sums of w a^T a, w a^T b, w |b|^2 and the count of epochs, up to epoch k - delay at
+    # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
+    # k may only use the least-squares sums up to k - h (compiled loop).
+    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
+    for om_o, var_o, R_o, cw_o, k_from, k_to in before or []:
+        # the solutions between two refinements: the sums of the rows as they were then
+        m = min(int(k_to.max()), n)
+        early = sel < m
+        if not early.any():
+            continue
+        ao, bo, wo, oko = _ls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
+                                   None if cw_o is None else cw_o[:, :m])  # fmt: skip
+        se = sel[early]
+        # the sums of a solution before k_to cover epochs up to k_to - h - 1 < m only
+        No, ro, bbo, co = _points_kernel.normal_equations_at(ao, bo, wo, oko, delay, se)
+        use = (se[None, :] >= k_from[:, None]) & (se[None, :] < k_to[:, None])  # (B, S_early)
+        N[:, early] = np.where(use[..., None, None], No, N[:, early])
+        r[:, early] = np.where(use[..., None], ro, r[:, early])
+        bb[:, early] = np.where(use, bbo, bb[:, early])
+        cnt[:, early] = np.where(use, co, cnt[:, early])
+    return _solve_and_dpacf(N, r, bb, cnt, sel, held, s,
+                            R_GI if R_GI_report is None else R_GI_report, cov_G)  # fmt: skip
+
+
+def _ls_rows(
+    omega_G: Array, var_w: Array, R_GI: Array, cov_w: Array | None
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """Rows a (B,n,3,8), b (B,n,3), weights and mask of the least squares (Hu 2024 eq. 11-12),
+    whitened (see identify_and_dpacf)."""
+    ok = np.all(np.isfinite(omega_G), axis=-1) & np.all(np.isfinite(R_GI), axis=(-1, -2))
+    a, b = inertia_design(np.nan_to_num(omega_G), np.nan_to_num(R_GI))
+    if cov_w is None:
+        w = np.where(ok, 1.0 / np.maximum(np.nan_to_num(var_w, nan=1.0), 1e-30), 0.0)
+    else:
+        # Generalised least squares (beyond the paper's eq. 13): each epoch's three rows are
+        # whitened by the covariance of their residual a X - b = I_bar d_omega + [R H x] psi,
+        # psi the G attitude error at k, R H = I_bar omega. The rate's error is its fit's
+        # noise plus -[omega x] psi (rates_and_covariance), so psi enters as
+        # ([I_bar omega x] - I_bar [omega x]) psi, which vanishes at I_bar = 1: with I_bar = 1
+        # (the moments differ by less than a factor 2, the rate error's axes by orders of
+        # magnitude) C = cov_w, the fit's noise only.
+        # (compiled loop; the numpy batched Cholesky and solves cost a fifth of the front end)
+        ok = ok & np.all(np.isfinite(cov_w), axis=(-1, -2))
+        a = np.ascontiguousarray(a)
+        b = np.ascontiguousarray(b)
+        _points_kernel.whiten_rows(a, b, np.ascontiguousarray(np.nan_to_num(cov_w)), ok)
+        w = ok.astype(float)
+    return a, b, w, ok
+
+
+def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
+    """identify_and_dpacf from the least-squares sums at the solved epochs ``sel``."""
+    d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
+    Ns = N / (d[..., :, None] * d[..., None, :])
+    ev = np.linalg.eigvalsh(Ns)
+    cond = ev[..., -1] / np.maximum(ev[..., 0], 1e-300)
+    valid = (cnt >= s.min_ls_epochs) & (cond < s.max_condition)
+    eye8 = np.eye(8)
+    Nreg = np.where(valid[..., None, None], Ns, eye8)
+    Ninv_s = np.linalg.inv(Nreg)
+    Ninv = Ninv_s / (d[..., :, None] * d[..., None, :])
+    X = np.einsum("...ij,...j->...i", Ninv, r)
+    rss = bb - 2 * np.einsum("...i,...i->...", X, r) + np.einsum("...i,...ij,...j->...", X, N, X)
+    dof = np.maximum(3 * cnt - 8, 1)
+    s2 = np.maximum(rss / dof, 1e-30)
+    # The rates come from overlapping windows of 2h+1 attitudes, so neighbouring epochs share
+    # their noise: the least-squares covariance, which assumes independent epochs, is too
+    # small by about that factor.
+    cov_l = (2 * s.rate_half_window + 1) * s2[..., None, None] * Ninv[..., :5, :5]
+    I_G = _inertia_from_l(X[..., :5])
+    lam = np.linalg.eigvalsh(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
+    lam = lam[..., ::-1]
+    gaps = np.minimum(lam[..., 0] - lam[..., 1], lam[..., 1] - lam[..., 2]) / np.abs(lam[..., 0])
+    physical = (lam[..., 2] > 0) & (lam[..., 1] + lam[..., 2] >= lam[..., 0] * (1 - 1e-3))
+    valid &= (gaps > s.min_eigengap) & physical
+    R_GT = principal_frame(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
+    # Eigenvector perturbation: rotation error of T relative to G, in T (derivation in docs).
+    r1, r2, r3 = R_GT[..., :, 0], R_GT[..., :, 1], R_GT[..., :, 2]
+    l1, l2, l3 = lam[..., 0], lam[..., 1], lam[..., 2]
+    Jphi = np.stack(
+        [
+            np.einsum("...i,jik,...k->...j", r3, _E, r2) / (l2 - l3)[..., None],
+            -np.einsum("...i,jik,...k->...j", r3, _E, r1) / (l1 - l3)[..., None],
+            np.einsum("...i,jik,...k->...j", r2, _E, r1) / (l1 - l2)[..., None],
+        ],
+        -2,
+    )  # (...,3,5)
+    cov_phi = Jphi @ cov_l @ np.swapaxes(Jphi, -1, -2)
+    # Covariance of the inertia ratios p (Hu 2024 eq. 19) by first-order perturbation of the
+    # eigenvalues, d lambda_i = r_i^T dI r_i (beyond the paper: the filter's initial
+    # covariance of p; the moments themselves are scale-free, p is a function of them).
+    # d lambda_i / d l_j = r_i^T E_j r_i, l = [Iyy, Izz, Ixy, Ixz, Iyz] (written out: an
+    # einsum over the basis _E cost a tenth of the front end)
+    rx, ry, rz = R_GT[..., 0, :], R_GT[..., 1, :], R_GT[..., 2, :]  # (..., 3): row a, col i
+    Jlam = np.stack([ry * ry, rz * rz, 2 * rx * ry, 2 * rx * rz, 2 * ry * rz], -1)
+    zero = np.zeros_like(l1)
+    Jp = (
+        np.stack(
+            [
+                np.stack([-(l2 - l3) / l1**2, 1 / l1, -1 / l1], -1),
+                np.stack([-1 / l2, -(l3 - l1) / l2**2, 1 / l2], -1),
+                np.stack([1 / l3, -1 / l3, -(l1 - l2) / l3**2], -1),
+            ],
+            -2,
+        )
+        + zero[..., None, None]
+    )
+    Jpl = Jp @ Jlam
+    cov_p = Jpl @ cov_l @ np.swapaxes(Jpl, -1, -2)
+    sig_phi = np.sqrt(np.max(np.linalg.eigvalsh(np.nan_to_num(cov_phi, nan=1e6)), axis=-1))
+    valid &= sig_phi < s.max_dpacf_sigma_rad
+    # back to every epoch (hold the latest solution)
+    pos = np.searchsorted(sel, held)
+    R_GT, lam, cov_phi, valid = R_GT[:, pos], lam[:, pos], cov_phi[:, pos], valid[:, pos]
+    cov_p = cov_p[:, pos]
+    R_TG = np.swapaxes(R_GT, -1, -2)
+    R_TI = R_TG @ _finite_or_identity(R_GI)
+    cov_TI = cov_phi + R_TG @ np.nan_to_num(cov_G) @ R_GT
+    q_TI = _quats(R_TI)
+    meas_ok = valid & np.all(np.isfinite(R_GI), axis=(-1, -2))
+    q_TI = np.where(meas_ok[..., None], q_TI, np.nan)
+    cov_TI = np.where(meas_ok[..., None, None], cov_TI, np.nan)
+    R_GT = np.where(valid[..., None, None], R_GT, np.nan)
+    moments = np.where(valid[..., None], lam / lam[..., :1], np.nan)
+    cov_phi = np.where(valid[..., None, None], cov_phi, np.nan)
+    cov_p = np.where(valid[..., None, None], cov_p, np.nan)
+    return R_GT, moments, q_TI, cov_TI, cov_phi, cov_p
