@@ -71,14 +71,15 @@ _EXAMPLE_FEATURES = 2
 
 def estimator_layouts(n_features: int) -> dict[str, StateLayout]:
     """The state layout of every registered estimator, with ``n_features`` features."""
-    from tumblenav.estimators import ekf_depth, ukf
+    from tumblenav.estimators import ukf
     from tumblenav.estimators.hu2024 import model as hu_model
+    from tumblenav.estimators.yu2019 import model as yu_model
 
     hu, kabir = hu_model.layout(n_features), ukf.layout(n_features)
     return {
         "ekf-dpacf": hu,
         "ekf-baseline": hu,
-        "ekf-depth": ekf_depth.LAYOUT,
+        "ekf-depth": yu_model.LAYOUT,
         "ukf": kabir,
         "ukf-mult": kabir,
         "ukf-gp": kabir,
@@ -255,9 +256,10 @@ def tuning_table(model: Any, only: Iterable[str] | None = None) -> str:
 def tuning_sections() -> dict[str, str]:
     """The ``estimator.tuning`` tables, read off the estimators' tuning models, so that the
     documented defaults are the ones used."""
-    from tumblenav.estimators import ekf_depth, ukf
+    from tumblenav.estimators import ukf
     from tumblenav.estimators.hu2024 import tuning as hu_tuning
     from tumblenav.estimators.kabir2025 import ukf_gp
+    from tumblenav.estimators.yu2019 import tuning as yu_tuning
     from tumblenav.frontends.stereo_points import StereoPointsTuning
 
     hu, base = hu_tuning.HuTuning, hu_tuning.BaselineTuning
@@ -269,7 +271,7 @@ def tuning_sections() -> dict[str, str]:
         "tuning: ekf-dpacf": tuning_table(hu),
         "tuning: stereo-points front end": tuning_table(StereoPointsTuning),
         "tuning: ekf-baseline": tuning_table(base, differ),
-        "tuning: ekf-depth": tuning_table(ekf_depth.DepthTuning),
+        "tuning: ekf-depth": tuning_table(yu_tuning.DepthTuning),
         "tuning: ukf": tuning_table(kabir),
         "tuning: ukf-gp": tuning_table(
             gp, [k for k in gp.model_fields if k not in kabir.model_fields]

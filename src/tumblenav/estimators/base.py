@@ -306,7 +306,7 @@ def _load_builtin() -> None:
     value: ``module:factory``, a callable returning the estimator). A plugin that fails to
     import is left out and its error kept in :data:`PLUGIN_ERRORS` (``tumblenav estimators``
     shows it); a plugin never replaces a built-in estimator."""
-    from tumblenav.estimators import ekf_depth, hu2024, kabir2025  # noqa: F401
+    from tumblenav.estimators import hu2024, kabir2025, yu2019  # noqa: F401
 
     if _PLUGINS or PLUGIN_ERRORS:
         return
