@@ -317,3 +317,15 @@ def test_a_stated_prior_that_the_simulated_truth_contradicts_is_flagged(tmp_path
         ["estimate", same, "-e", "ukf", "--no-plots", "-o", tmp_path / "p"], capsys
     )
     assert code == 0 and "differs from the simulated truth" not in " ".join(shown.split())
+
+
+def test_the_compile_message_is_not_shown_once_the_kernels_are_cached(tmp_path):
+    """After a run of a compiled estimator numba's cache holds every listed kernel module, so
+    the "compiling" message is not shown again (a listed module whose kernels are all inlined
+    into others never gets cache files: it made the message appear every time)."""
+    from tumblenav.numba_cache import KERNEL_MODULES, kernels_compiled
+
+    sc = write(tmp_path, "short", short_hu(20.0))
+    quiet = Console(file=__import__("io").StringIO())
+    pipeline.run_estimate(str(sc), "ekf-dpacf", tmp_path / "e", plots=False, console=quiet)
+    assert kernels_compiled(), KERNEL_MODULES

@@ -12,12 +12,9 @@ from pathlib import Path
 
 import tumblenav
 
-KERNEL_MODULES = (
-    "estimators/hu2024/kernels.py",
-    "frontends/_points_kernel.py",
-    "rotations_compiled.py",
-    "dynamics/compiled.py",
-)
+# the modules whose kernels numba caches; rotations_compiled and dynamics/compiled are inlined
+# into these (inline="always": no cache files of their own, so they must not be listed)
+KERNEL_MODULES = ("estimators/hu2024/kernels.py", "frontends/_points_kernel.py")
 
 
 def kernels_compiled() -> bool:
