@@ -164,14 +164,18 @@ def test_default_inertia_sigma_matches_the_initial_guess():
 
 def test_plane_threshold_rule_and_former_keys():
     """3 sigma of the range noise, at least 1 mm, unless given in metres; null (the former
-    default) means the rule; a bad value names the key and the rule."""
+    default) means the rule; a bad value names the key (now under the planes front end's
+    settings, ``frontend``, where a top-level key goes) and the rule."""
     tun = D.DepthTuning()
-    assert (tun.plane_threshold_m, tun.plane_threshold_sigmas) == ("range_noise", 3.0)
+    fe = tun.frontend
+    assert (fe.plane_threshold_m, fe.plane_threshold_sigmas) == ("range_noise", 3.0)
     assert D.plane_threshold(tun, 0.01) == 3 * 0.01
     assert D.plane_threshold(tun, 0.0) == 1e-3
     assert D.plane_threshold(D.DepthTuning(plane_threshold_m=0.05), 0.01) == 0.05
     assert D.plane_threshold(D.DepthTuning(plane_threshold_sigmas=4.0), 0.01) == 4 * 0.01
     former = base.parse_tuning({"plane_threshold_m": None, "P0_sigma_inertia": None}, D.DepthTuning)
     assert former == tun
-    with pytest.raises(InputError, match="estimator.tuning.plane_threshold_m: .*'range_noise'"):
+    with pytest.raises(
+        InputError, match="estimator.tuning.frontend.plane_threshold_m: .*'range_noise'"
+    ):
         base.parse_tuning({"plane_threshold_m": -1.0}, D.DepthTuning)

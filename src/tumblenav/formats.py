@@ -260,6 +260,8 @@ def tuning_sections() -> dict[str, str]:
     from tumblenav.estimators.hu2024 import tuning as hu_tuning
     from tumblenav.estimators.kabir2025 import ukf_gp
     from tumblenav.estimators.yu2019 import tuning as yu_tuning
+    from tumblenav.frontends.depth_pose import PlanesTuning
+    from tumblenav.frontends.projections import ProjectionsTuning
     from tumblenav.frontends.stereo_points import StereoPointsTuning
 
     hu, base = hu_tuning.HuTuning, hu_tuning.BaselineTuning
@@ -270,6 +272,8 @@ def tuning_sections() -> dict[str, str]:
     return {
         "tuning: ekf-dpacf": tuning_table(hu),
         "tuning: stereo-points front end": tuning_table(StereoPointsTuning),
+        "tuning: projections front end": tuning_table(ProjectionsTuning),
+        "tuning: planes front end": tuning_table(PlanesTuning),
         "tuning: ekf-baseline": tuning_table(base, differ),
         "tuning: ekf-depth": tuning_table(yu_tuning.DepthTuning),
         "tuning: ukf": tuning_table(kabir),

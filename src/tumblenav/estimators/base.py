@@ -362,6 +362,19 @@ def parse_tuning(raw: dict[str, Any] | None, model: type[TuningT]) -> TuningT:
         raise InputError(f"estimator.tuning.{loc}: {msg}") from None
 
 
+def nest_front_end_keys(raw: Any, front_end: type[BaseModel], key: str = "frontend") -> Any:
+    """A tuning model's ``mode="before"`` validator step: the front end's keys given at the
+    top level of ``estimator.tuning`` (where they were before they moved into the front end's
+    own settings) go under ``key``, so that existing scenario files keep working."""
+    if not isinstance(raw, dict):
+        return raw
+    moved = {k: raw[k] for k in front_end.model_fields if k in raw}
+    if not moved:
+        return raw
+    rest = {k: v for k, v in raw.items() if k not in moved}
+    return {**rest, key: {**moved, **dict(raw.get(key) or {})}}
+
+
 def check_names(names: Sequence[str]) -> None:
     for n in names:
         get(n)

@@ -14,9 +14,11 @@ part) gives no fix, and the reason is returned.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from tumblenav.frontends.planes import (
     RECTANGLE_SYMMETRIES,
@@ -26,6 +28,7 @@ from tumblenav.frontends.planes import (
     rectangle_sides,
     side_mismatch,
 )
+from tumblenav.settings_rules import positive_or_rule
 from tumblenav.target_model import TargetModel
 
 Array = NDArray[np.float64]
@@ -142,3 +145,34 @@ def model_symmetries(rectangles) -> list[Array]:
             if ok:
                 out.append(G)
     return out
+
+
+class PlanesTuning(BaseModel):
+    """Settings of the planes front end (Yu 2019 Sec. 2-3: RANSAC planes, rectangles, pose
+    fixes), under ``estimator.tuning.frontend`` of ekf-depth (the same keys at the top of
+    ``estimator.tuning`` are still read, as before)."""
+
+    model_config = ConfigDict(extra="forbid")
+    plane_threshold_m: float | Literal["range_noise"] = Field(
+        "range_noise",
+        description="inlier distance of the RANSAC plane fits (m); 'range_noise': "
+        "plane_threshold_sigmas x the sensor's range_noise_m, at least plane_threshold_min_m",
+    )
+    plane_threshold_sigmas: float = Field(
+        3.0, gt=0, description="with plane_threshold_m 'range_noise': the threshold in sigmas"
+    )
+    plane_threshold_min_m: float = Field(
+        1e-3, gt=0, description="with plane_threshold_m 'range_noise': its floor (m)"
+    )
+
+    @field_validator("plane_threshold_m", mode="before")
+    @classmethod
+    def _number_or_rule(cls, v: Any) -> Any:
+        return positive_or_rule(v, "range_noise")
+
+    def threshold(self, range_noise_m: float) -> float:
+        """Inlier distance (m): as given, else ``plane_threshold_sigmas`` times the sensor's
+        range noise, at least ``plane_threshold_min_m``."""
+        if self.plane_threshold_m != "range_noise":
+            return float(self.plane_threshold_m)
+        return max(self.plane_threshold_sigmas * range_noise_m, self.plane_threshold_min_m)

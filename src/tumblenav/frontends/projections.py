@@ -35,10 +35,11 @@ projections along a simulated trajectory.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
@@ -285,3 +286,18 @@ def kabir_h(
         xd, yd, zd = xd + v0[..., 0], yd + v0[..., 1], zd + v0[..., 2]
     du_L, du_R, dv = (xd - u_L * yd) * iy, (xd - u_R * yd) * iy, (zd - v * yd) * iy
     return np.stack([u_R, v, u_L, v, u_L - u_R, du_R, dv, du_L, dv], axis=-1)
+
+
+class ProjectionsTuning(BaseModel):
+    """Settings of the projections front end (Kabir 2025 eq. 16-27), under
+    ``estimator.tuning.frontend`` of ukf, ukf-mult and ukf-gp (the same keys at the top of
+    ``estimator.tuning`` are still read, as before)."""
+
+    model_config = ConfigDict(extra="forbid")
+    flow_edges: Literal["drop", "paper"] = Field(
+        "drop",
+        description="'drop': no flow where Kabir 2025 eq. 27 falls back to its first- and "
+        "second-order differences (two samples at each end of every run of measurements: their "
+        "truncation error is tens to hundreds of sigma_o at the paper's tuning); 'paper': use "
+        "eq. 27 everywhere",
+    )

@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from tumblenav.estimators.base import nest_front_end_keys
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.frontends.stereo_points import StereoPointsTuning
 
@@ -180,13 +181,7 @@ class HuTuning(BaseModel):
     @classmethod
     def _front_end_keys(cls, raw: Any) -> Any:
         """Front-end keys given at the top level (as before they moved) go to ``frontend``."""
-        if not isinstance(raw, dict):
-            return raw
-        moved = {k: raw[k] for k in StereoPointsTuning.model_fields if k in raw}
-        if not moved:
-            return raw
-        rest = {k: v for k, v in raw.items() if k not in moved}
-        return {**rest, "frontend": {**moved, **dict(raw.get("frontend") or {})}}
+        return nest_front_end_keys(raw, StereoPointsTuning)
 
     @model_validator(mode="after")
     def _dependent_defaults(self) -> HuTuning:

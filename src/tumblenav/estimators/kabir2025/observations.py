@@ -63,7 +63,7 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
         raise InputError("Kabir 2025's finite differences need uniformly sampled measurements")
     w, _ = proj.normalised(meas)
     flow = proj.finite_difference_rate(w, float(dts[0]))
-    if tun.flow_edges == "drop":
+    if tun.frontend.flow_edges == "drop":
         flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
     z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
     sp, sd = projection_sigmas(tun, meas)

@@ -12,10 +12,14 @@ from pydantic import (
     Field,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 
 from tumblenav.errors import InputError
+from tumblenav.estimators.base import nest_front_end_keys
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
+from tumblenav.frontends.projections import ProjectionsTuning
+from tumblenav.settings_rules import positive_or_rule
 
 Array = NDArray[np.float64]
 Variant = Literal["additive", "mult"]
@@ -92,12 +96,9 @@ class KabirTuning(BaseModel):
         "is ~3e-3 to 6e-3 rad/s at Kabir's tumbling rates, far above the paper's sigma_o "
         "(docs/results/kabir2025.md)",
     )
-    flow_edges: Literal["drop", "paper"] = Field(
-        "drop",
-        description="'drop': no flow where Kabir 2025 eq. 27 falls back to its first- and "
-        "second-order differences (two samples at each end of every run of measurements: their "
-        "truncation error is tens to hundreds of sigma_o at the paper's tuning); 'paper': use "
-        "eq. 27 everywhere",
+    frontend: ProjectionsTuning = Field(
+        default_factory=ProjectionsTuning,
+        description="the projections front end's settings (ProjectionsTuning)",
     )
     gate_probability: float | None = Field(
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
@@ -109,16 +110,13 @@ class KabirTuning(BaseModel):
         """A positive number, or the rule named by the default (``null``, the former default,
         means the rule too)."""
         assert info.field_name is not None  # a field validator's info names its field
-        rule = cls.model_fields[info.field_name].default
-        if v is None or v == rule:
-            return rule
-        try:
-            number = float("nan") if isinstance(v, bool) else float(v)
-        except (TypeError, ValueError):
-            number = float("nan")
-        if not number > 0:
-            raise ValueError(f"a positive number or '{rule}', got {v!r}")
-        return number
+        return positive_or_rule(v, cls.model_fields[info.field_name].default)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _front_end_keys(cls, raw: Any) -> Any:
+        """Front-end keys given at the top level (as before they moved) go to ``frontend``."""
+        return nest_front_end_keys(raw, ProjectionsTuning)
 
 
 def parse_tuning(raw: dict[str, Any] | None, model: type[KabirTuning] = KabirTuning) -> KabirTuning:

@@ -126,7 +126,7 @@ def pseudo_measurements(
         mean, var = m.predict(t)  # (n, 3) [u_R, v_R, u_L]
         w4 = np.concatenate([mean, mean[:, 1:2]], axis=1)  # v_L = v_R (Kabir 2025 eq. 16-17)
         flow = proj.finite_difference_rate(w4, dt)  # eq. 27 over the whole predicted series
-        if tun.flow_edges == "drop":  # as for measured flows: only where eq. 27 is 4th order
+        if tun.frontend.flow_edges == "drop":  # as for measured flows: only where eq. 27 is 4th order
             flow = np.where(proj.finite_difference_order(w4) == 4, flow, np.nan)
         zi = np.concatenate([w4, mean[:, 2:3] - mean[:, 0:1], flow], axis=1)
         z[missing, i, :] = zi[missing]

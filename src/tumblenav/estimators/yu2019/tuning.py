@@ -6,7 +6,11 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+
+from tumblenav.estimators.base import nest_front_end_keys
+from tumblenav.frontends.depth_pose import PlanesTuning
+from tumblenav.settings_rules import positive_or_rule
 
 Array = NDArray[np.float64]
 
@@ -46,16 +50,9 @@ class DepthTuning(BaseModel):
         "is 0.3-0.5 off a typical satellite's ratios)",
     )
     Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
-    plane_threshold_m: float | Literal["range_noise"] = Field(
-        "range_noise",
-        description="inlier distance of the RANSAC plane fits (m); 'range_noise': "
-        "plane_threshold_sigmas x the sensor's range_noise_m, at least plane_threshold_min_m",
-    )
-    plane_threshold_sigmas: float = Field(
-        3.0, gt=0, description="with plane_threshold_m 'range_noise': the threshold in sigmas"
-    )
-    plane_threshold_min_m: float = Field(
-        1e-3, gt=0, description="with plane_threshold_m 'range_noise': its floor (m)"
+    frontend: PlanesTuning = Field(
+        default_factory=PlanesTuning,
+        description="the planes front end's settings (PlanesTuning)",
     )
     gate_probability: float = Field(
         0.9999,
@@ -108,22 +105,19 @@ class DepthTuning(BaseModel):
         "(Yu 2019 eq. 21-25); false reproduces the paper's Fig. 9 (180-degree jumps)",
     )
 
-    @field_validator("P0_sigma_inertia", "plane_threshold_m", mode="before")
+    @model_validator(mode="before")
+    @classmethod
+    def _front_end_keys(cls, raw: Any) -> Any:
+        """Front-end keys given at the top level (as before they moved) go to ``frontend``."""
+        return nest_front_end_keys(raw, PlanesTuning)
+
+    @field_validator("P0_sigma_inertia", mode="before")
     @classmethod
     def _number_or_rule(cls, v: Any, info: ValidationInfo) -> Any:
         """A positive number, or the rule named by the default (``null``, the former default,
         means the rule too)."""
         assert info.field_name is not None  # a field validator's info names its field
-        rule = cls.model_fields[info.field_name].default
-        if v is None or v == rule:
-            return rule
-        try:
-            number = float("nan") if isinstance(v, bool) else float(v)
-        except (TypeError, ValueError):
-            number = float("nan")
-        if not number > 0:
-            raise ValueError(f"a positive number or '{rule}', got {v!r}")
-        return number
+        return positive_or_rule(v, cls.model_fields[info.field_name].default)
 
 
 def _sigma_inertia(tun: DepthTuning) -> float:
@@ -136,8 +130,5 @@ def _sigma_inertia(tun: DepthTuning) -> float:
 
 
 def plane_threshold(tun: DepthTuning, range_noise_m: float) -> float:
-    """Inlier distance (m) of the RANSAC plane fits: as given, else ``plane_threshold_sigmas``
-    times the sensor's range noise, at least ``plane_threshold_min_m``."""
-    if tun.plane_threshold_m != "range_noise":
-        return tun.plane_threshold_m
-    return max(tun.plane_threshold_sigmas * range_noise_m, tun.plane_threshold_min_m)
+    """Inlier distance (m) of the RANSAC plane fits (:meth:`PlanesTuning.threshold`)."""
+    return tun.frontend.threshold(range_noise_m)
