@@ -222,6 +222,43 @@ def montecarlo(
 
 
 @app.command(cls=StrictCommand)
+def compare(
+    scenario: ScenarioArg,
+    estimators: Annotated[
+        str,
+        typer.Option("--estimator", "-e", help="estimators to compare, comma-separated: -e a,b,c"),
+    ],
+    runs: Annotated[
+        int | None, typer.Option(min=1, help="runs per estimator (default: the scenario's)")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="processes (default: all cores)")
+    ] = None,
+    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address")] = None,
+    output: OutOpt = Path("out/compare"),
+    seed: SeedOpt = None,
+    plots: PlotsOpt = True,
+) -> None:
+    """Head to head: the same truth, measurements and seeds for every estimator; one table,
+    overlaid figures; resumable (rerun with the same -o)."""
+    from tumblenav.pipeline import print_comparison, run_compare
+
+    summary = run_compare(
+        scenario,
+        estimators.split(","),
+        runs,
+        output,
+        workers,
+        scheduler,
+        console=err,
+        seed=seed,
+        plots=plots,
+    )
+    print_comparison(summary, out)
+    out.print(f"results in {output}")
+
+
+@app.command(cls=StrictCommand)
 def reproduce(
     paper: Annotated[str, typer.Argument(help="hu2024, yu2019, chang2021 or kabir2025")],
     runs: Annotated[

@@ -13,7 +13,7 @@ from rich.table import Table
 from tumblenav import evaluation, io, sensors
 from tumblenav import plots as figures
 from tumblenav.campaign import runner
-from tumblenav.campaign.store import run_seed
+from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
 from tumblenav.estimators.context import context_from_scenario
@@ -241,7 +241,9 @@ def run_montecarlo(
         console=console,
     )
     summary["warnings"] = assess(summary)
-    truth0 = simulate_truth(scenario, run_streams(run_seed(scenario.montecarlo.seed, 0))["features"])
+    truth0 = simulate_truth(
+        scenario, run_streams(run_seed(scenario.montecarlo.seed, 0))["features"]
+    )
     summary["warnings"] += evaluation.assumption_warnings(scenario.estimator.tuning, truth0)
     io.write_json(summary, Path(output) / "summary.json")
     if plots:
@@ -415,3 +417,173 @@ def run_demo(output: Path, console: Console) -> None:
     )
     for f in sorted(output.glob("*")):
         console.print(f"  {f}")
+
+
+def run_compare(
+    scenario_ref: str,
+    estimators: list[str],
+    runs: int | None,
+    output: Path,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    console: Console | None = None,
+    seed: int | None = None,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Head to head: one resumable campaign per estimator (``output/<estimator>/``) on the
+    same truth, measurements and seeds (run k's streams come from the same base seed, so every
+    estimator sees the very same simulated runs), one table, overlaid figures and a summary
+    with one case per estimator. Every estimator is checked against the scenario before any
+    work (InputError naming the ones that cannot run and why)."""
+    import time
+
+    scenario = load_scenario(scenario_ref)
+    if seed is not None:
+        scenario = scenario.with_updates(**{"montecarlo.seed": seed})
+    names = [e.strip() for e in estimators if e.strip()]
+    if len(names) < 2:
+        raise InputError("compare needs at least two estimators: -e NAME,NAME,...", "--estimator")
+    if len(set(names)) != len(names):
+        raise InputError(f"an estimator is named twice: {', '.join(names)}", "--estimator")
+    refused = []
+    for name in names:
+        try:
+            est_base.get_for(name, scenario)
+        except InputError as exc:
+            refused.append(f"{name} ({exc})")
+    if refused:
+        raise InputError(
+            f"cannot run on scenario {scenario.name}: " + "; ".join(refused), "--estimator"
+        )
+    runs = runs or scenario.montecarlo.runs
+    output = Path(output)
+    con = console or Console(stderr=True)
+    cases = []
+    for name in names:
+        folder = output / name
+        before = len(CampaignStore(folder).done()) if folder.exists() else 0
+        t0 = time.perf_counter()
+        s = runner.run_campaign(
+            scenario, name, runs, folder, workers=workers, scheduler=scheduler, console=con
+        )
+        computed = s["runs"] + s.get("runs_failed", 0) - min(before, runs)
+        s["warnings"] = assess(s)
+        if computed > 0:
+            s["seconds_per_run"] = (time.perf_counter() - t0) / computed
+        io.write_json(s, folder / "summary.json")
+        cases.append(s)
+    summary: dict[str, Any] = {
+        "scenario": scenario.name,
+        "runs": runs,
+        "base_seed": scenario.montecarlo.seed,
+        "window_s": list(scenario.window_s),
+        "same_measurements": True,
+        "cases": cases,
+    }
+    io.write_json(summary, output / "summary.json")
+    if plots:
+        compare_figures(output, scenario, names, runs)
+    return summary
+
+
+def compare_figures(folder: Path, scenario: Scenario, names: list[str], runs: int) -> None:
+    """Overlaid figures of a comparison: ``rmse_<key>.png`` (each estimator's RMSE over runs
+    vs time, per quantity any of them estimates) and ``nees.png`` (each estimator's
+    run-averaged NEES/dof against its own 95% bounds, one panel each)."""
+    folder = Path(folder)
+    data = {name: campaign_curves(folder / name, runs) for name in names}
+    window = scenario.window_s
+    occlusions = figures.occlusion_windows(scenario)
+    keys = list(dict.fromkeys(k for _, curves, _ in data.values() for k in curves))
+    for key in keys:
+        curves = {f"{n} RMSE": (t, c[key]) for n, (t, c, _) in data.items() if key in c}
+        figures.plot_rmse(
+            curves,
+            key,
+            folder / f"rmse_{key}.png",
+            f"{scenario.name}: RMSE over {runs} runs, same runs for every estimator",
+            window=window,
+            occlusions=occlusions,
+        )
+    panels, t_ref = [], None
+    for name, (t, _, cons) in data.items():
+        if not cons:
+            continue
+        t_ref = t if t_ref is None else t_ref
+        c = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
+        panels.append(
+            figures.ConsistencyPanel(
+                f"{name}: NEES / dof (dof {c['dof']})",
+                {f"{name} run-average NEES / dof": cons["nees_per_dof"]},
+                tuple(c["bounds95"]) if c["bounds95"] else None,
+            )
+        )
+    if panels and t_ref is not None:
+        figures.plot_consistency(
+            t_ref,
+            panels,
+            None,
+            folder / "nees.png",
+            f"{scenario.name}: consistency over {runs} runs (95% bounds for the average of "
+            f"{runs} runs)",
+            window=window,
+            occlusions=occlusions,
+        )
+
+
+def print_comparison(summary: dict[str, Any], console: Console) -> None:
+    """The head-to-head table: RMSE per quantity over the steady-state window, mean NEES and
+    NIS with their 95% bounds (marked when outside) and the fraction of the window inside,
+    runs that failed, never started or diverged, and the time per run."""
+    cases = summary.get("cases") or []
+    w = summary.get("window_s") or [0.0, 0.0]
+    console.print(
+        f"[bold]{summary.get('scenario')}[/]: {summary.get('runs')} runs per estimator, the same "
+        f"runs (base seed {summary.get('base_seed')}) for each; steady-state window "
+        f"{w[0]:g}-{w[1]:g} s"
+    )
+    table = Table()
+    table.add_column("quantity")
+    for c in cases:
+        table.add_column(str(c.get("estimator")), justify="right")
+    keys = list(dict.fromkeys(k for c in cases for k in (c.get("rmse") or {})))
+    for k in keys:
+        row = [f"RMSE {k}"]
+        for c in cases:
+            v = (c.get("rmse") or {}).get(k)
+            row.append("-" if v is None else f"{v:.4g}")
+        table.add_row(*row)
+    for name in ("nees", "nis"):
+        row = [f"{name.upper()}/dof (95% bounds)"]
+        for c in cases:
+            s = c.get(name) or {}
+            if s.get("mean") is None:
+                row.append("-")
+                continue
+            lo, hi = s["bounds95"]
+            side = _outside(s)
+            mark = f" [bold red]{side}[/]" if side else ""
+            row.append(f"{s['mean']:.3g} ({lo:.2g}-{hi:.2g}){mark}")
+        table.add_row(*row)
+        row = [f"  {name.upper()} in bounds (window)"]
+        for c in cases:
+            frac = (c.get(name) or {}).get("inside_fraction")
+            row.append("-" if frac is None else f"{100 * frac:.0f}%")
+        table.add_row(*row)
+    for label, key in (
+        ("runs failed", "runs_failed"),
+        ("runs without estimate", "runs_without_estimate"),
+        ("runs diverged", "runs_diverged"),
+    ):
+        table.add_row(label, *[str(c.get(key, 0)) for c in cases])
+    table.add_row(
+        "time per run (s)",
+        *[f"{c['seconds_per_run']:.3g}" if c.get("seconds_per_run") else "(stored)" for c in cases],
+    )
+    console.print(table)
+    for c in cases:
+        for line in c.get("warnings") or []:
+            console.print(
+                f"[bold yellow]warning ({escape(str(c.get('estimator')))}):[/] {escape(line)}",
+                highlight=False,
+            )
