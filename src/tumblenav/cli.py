@@ -72,6 +72,25 @@ class StrictGroup(TyperGroup):
         return super().parse_args(ctx, args)
 
 
+_ARGV: list[str] = []  # the command line main() was given (recorded in summary.json)
+
+
+def _record(output: Path, report: bool = False) -> None:
+    """Add the command line to ``output/summary.json`` (the report shows it) and, with
+    ``report``, write ``output/report.html``."""
+    from tumblenav import io
+
+    path = Path(output) / "summary.json"
+    if path.is_file():
+        summary = io.read_json(path)
+        summary["command"] = " ".join(["tumblenav", *_ARGV])
+        io.write_json(summary, path)
+    if report:
+        from tumblenav.report import write_report
+
+        out.print(f"report: {write_report(Path(output))}")
+
+
 def _version(value: bool) -> None:
     if value:
         from importlib.metadata import version
@@ -184,6 +203,7 @@ def estimate(
     summary = run_estimate(
         scenario, estimator, output, measurements, seed, console=err, plots=plots
     )
+    _record(output)
     print_summary(summary, out)
     out.print(f"results in {output}")
 
@@ -217,6 +237,7 @@ def montecarlo(
         seed=seed,
         plots=plots,
     )
+    _record(output)
     print_summary(summary, out)
     out.print(f"results in {output}")
 
@@ -254,6 +275,7 @@ def compare(
         seed=seed,
         plots=plots,
     )
+    _record(output, report=True)
     print_comparison(summary, out)
     out.print(f"results in {output}")
 
@@ -282,8 +304,21 @@ def reproduce(
             "command again to resume"
         )
         raise
+    _record(output, report=True)
     print_comparison(summary, out)
     out.print(f"{len(summary.get('cases', []))} cases; results in {output}")
+
+
+@app.command(cls=StrictCommand)
+def report(
+    folder: Annotated[Path, typer.Argument(help="an output folder of any command")],
+) -> None:
+    """One self-contained HTML file (report.html in the folder, figures embedded): the
+    scenario and what differs from the built-in, the tables, NEES/NIS against their bounds,
+    the figures, failed runs, versions and the command that made the results."""
+    from tumblenav.report import write_report
+
+    out.print(f"wrote {write_report(folder)}")
 
 
 @app.command(cls=StrictCommand)
@@ -333,6 +368,7 @@ def _install_signal_handlers() -> None:
 def main(argv: list[str] | None = None) -> None:
     """Entry point: exit 0 ok, 2 for an InputError or a usage error, 130/143 when interrupted
     (SIGINT/SIGTERM), 1 for anything unexpected; one line each, no traceback."""
+    _ARGV[:] = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     _install_signal_handlers()
     try:

@@ -39,12 +39,23 @@ def run_simulate(
         truth, meas = simulate(scenario, run_seed(base, 0))  # = run 0 of a campaign
     output = Path(output)
     files = [io.write_netcdf(truth.to_dataset(scenario.name), output / "truth.nc")]
+    files.append(_write_scenario(scenario, output))
     files.append(io.write_netcdf(meas.to_dataset(scenario.name), output / "measurements.nc"))
     if plots:
         files.append(figures.plot_truth(truth, output / "truth.png", f"{scenario.name}: truth"))
         plot = figures.plot_measurements if scenario.sensor.kind == "stereo" else figures.plot_depth
         files.append(plot(meas, output / "measurements.png", f"{scenario.name}: measurements"))
     return files
+
+
+def _write_scenario(scenario: Scenario, output: Path) -> Path:
+    """The scenario as run, beside its results (``scenario.yaml``, atomic)."""
+    from tumblenav.scenario import scenario_to_yaml
+
+    text = scenario_to_yaml(scenario)
+    return io.atomic_write(
+        Path(output) / "scenario.yaml", lambda tmp: tmp.write_text(text, encoding="utf-8")
+    )
 
 
 def _rig_differences(file_rig, scenario_rig) -> list[str]:
@@ -203,6 +214,7 @@ def run_estimate(
             f"{estimator} never started: its start condition was not met in this run "
             + str(hist.info.get("start_condition", "(see the estimator's documentation)"))
         )
+    _write_scenario(scenario, output)
     summary["warnings"] = assess(summary)
     if truth is not None:
         summary["warnings"] += evaluation.assumption_warnings(scenario.estimator.tuning, truth)
