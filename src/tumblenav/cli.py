@@ -141,6 +141,8 @@ err = Console(stderr=True)
 ScenarioArg = Annotated[str, typer.Argument(help="built-in scenario name or path to a YAML file")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="output folder")]
 PlotsOpt = Annotated[bool, typer.Option("--plots/--no-plots", help="also write PNG figures")]
+WorkersOpt = Annotated[int | None, typer.Option(min=1, help="processes (default: all cores)")]
+SchedulerOpt = Annotated[str | None, typer.Option(help="Dask scheduler address")]
 SeedOpt = Annotated[
     int | None,
     typer.Option(help="base seed (default: the scenario's montecarlo.seed)", min=0),
@@ -215,10 +217,8 @@ def montecarlo(
     runs: Annotated[
         int | None, typer.Option(min=1, help="number of runs (default: the scenario's)")
     ] = None,
-    workers: Annotated[
-        int | None, typer.Option(min=1, help="processes (default: all cores)")
-    ] = None,
-    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address")] = None,
+    workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
     output: OutOpt = Path("out/montecarlo"),
     seed: SeedOpt = None,
     plots: PlotsOpt = True,
@@ -252,10 +252,8 @@ def compare(
     runs: Annotated[
         int | None, typer.Option(min=1, help="runs per estimator (default: the scenario's)")
     ] = None,
-    workers: Annotated[
-        int | None, typer.Option(min=1, help="processes (default: all cores)")
-    ] = None,
-    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address")] = None,
+    workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
     output: OutOpt = Path("out/compare"),
     seed: SeedOpt = None,
     plots: PlotsOpt = True,
@@ -286,9 +284,7 @@ def reproduce(
     runs: Annotated[
         int | None, typer.Option(min=1, help="runs per case (default: the paper's)")
     ] = None,
-    workers: Annotated[
-        int | None, typer.Option(min=1, help="processes (default: all cores)")
-    ] = None,
+    workers: WorkersOpt = None,
     output: OutOpt = Path("out/reproduce"),
 ) -> None:
     """Reproduce a paper's simulation section: figures and summary.json with its values."""

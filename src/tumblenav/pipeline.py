@@ -242,8 +242,7 @@ def run_montecarlo(
         scenario = scenario.with_updates(**{"montecarlo.seed": seed})
     estimator = estimator or scenario.estimator.name
     runs = runs or scenario.montecarlo.runs
-    est_base.get_for(estimator, scenario)
-    summary = runner.run_campaign(
+    summary = runner.run_campaign(  # checks the estimator against the scenario first
         scenario,
         estimator,
         runs,
@@ -253,10 +252,12 @@ def run_montecarlo(
         console=console,
     )
     summary["warnings"] = assess(summary)
-    truth0 = simulate_truth(
-        scenario, run_streams(run_seed(scenario.montecarlo.seed, 0))["features"]
-    )
-    summary["warnings"] += evaluation.assumption_warnings(scenario.estimator.tuning, truth0)
+    tuning = scenario.estimator.tuning or {}
+    if any(tuning.get(k) is not None for k in evaluation.ASSUMPTIONS):  # a stated prior
+        truth0 = simulate_truth(
+            scenario, run_streams(run_seed(scenario.montecarlo.seed, 0))["features"]
+        )
+        summary["warnings"] += evaluation.assumption_warnings(tuning, truth0)
     io.write_json(summary, Path(output) / "summary.json")
     if plots:
         campaign_figures(Path(output), scenario, estimator, runs)

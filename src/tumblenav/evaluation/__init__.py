@@ -58,6 +58,14 @@ def error_states(
     return x_true, err
 
 
+# settings that state a prior about the target, checked against the simulated truth:
+# key -> (truth attribute, unit, tolerance)
+ASSUMPTIONS = {
+    "mass_centre_L_m": ("r_L", "m", 1e-3),
+    "mass_centre_velocity_L_m_s": ("v_L", "m/s", 1e-5),
+}
+
+
 def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
     """Priors a user stated in an estimator's settings that the simulated truth contradicts
     (one line each). A simulation may test a wrong prior on purpose, so this only warns:
@@ -65,11 +73,7 @@ def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
     against the truth's ``r_L``, ``v_L`` at the first epoch."""
     tuning = tuning or {}
     out = []
-    checks = (
-        ("mass_centre_L_m", "r_L", "m", 1e-3),
-        ("mass_centre_velocity_L_m_s", "v_L", "m/s", 1e-5),
-    )
-    for key, attr, unit, tol in checks:
+    for key, (attr, unit, tol) in ASSUMPTIONS.items():
         if tuning.get(key) is None:
             continue
         stated = np.asarray(tuning[key], dtype=float)

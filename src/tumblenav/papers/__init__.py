@@ -11,6 +11,17 @@ from tumblenav.errors import InputError
 
 PAPERS = ("hu2024", "yu2019", "chang2021", "kabir2025")
 
+# what a reproduce case keeps of its campaign's summary.json
+CASE_KEYS = ("runs", "runs_failed", "runs_without_estimate", "window_s", "rmse", "per_run",
+             "nees", "nis")  # fmt: skip
+
+
+def case_from_campaign(summary: dict[str, Any]) -> dict[str, Any]:
+    """The campaign summary's part that a reproduce case reports (``rmse`` {} if none)."""
+    case = {k: summary.get(k) for k in CASE_KEYS}
+    case["rmse"] = summary.get("rmse", {})
+    return case
+
 
 def reproduce(
     paper: str,

@@ -16,6 +16,7 @@ from rich.console import Console
 
 from tumblenav import io
 from tumblenav import plots as figures
+from tumblenav.papers import case_from_campaign
 from tumblenav.pipeline import campaign_curves, run_montecarlo
 from tumblenav.scenario import load_scenario
 
@@ -69,14 +70,7 @@ def reproduce(
             case = {
                 "noise_rad": noise,
                 "estimator": est,
-                "runs": s["runs"],
-                "runs_failed": s["runs_failed"],
-                "runs_without_estimate": s.get("runs_without_estimate"),
-                "window_s": s["window_s"],
-                "rmse": s.get("rmse", {}),
-                "per_run": s.get("per_run"),
-                "nees": s.get("nees"),
-                "nis": s.get("nis"),
+                **case_from_campaign(s),
                 "paper_values": {"note": "Hu 2024 gives figures only (Figs. 5-11)"},
             }
             if noise == 2e-5 and est == "ekf-dpacf":

@@ -28,6 +28,7 @@ from tumblenav.campaign import runner
 from tumblenav.campaign.store import CampaignStore
 from tumblenav.errors import InputError
 from tumblenav.frontends.planes import distribution_matrix, ransac_plane
+from tumblenav.papers import case_from_campaign
 from tumblenav.scenario import Scenario, load_scenario
 
 # Yu 2019 Table 1: outliers -> (extracted points, time ms)
@@ -255,14 +256,7 @@ def filter_cases(
                 "estimator": "ekf-depth",
                 "noise_m": noise,
                 "multi_solution_fix": fix,
-                "runs": s["runs"],
-                "runs_failed": s["runs_failed"],
-                "runs_without_estimate": s.get("runs_without_estimate"),
-                "window_s": s["window_s"],
-                "rmse": s.get("rmse", {}),
-                "per_run": s.get("per_run"),
-                "nees": s.get("nees"),
-                "nis": s.get("nis"),
+                **case_from_campaign(s),
                 "max_attitude_jump_deg": jump,
                 "skipped": _skipped(CampaignStore(folder), cons.get("runs", [])),
                 "paper_values": PAPER_FILTER,
