@@ -9,7 +9,7 @@ import yaml
 from tumblenav.errors import InputError
 from tumblenav.scenario import builtin_names, builtin_text, load_scenario, scenario_to_yaml
 
-BUILTINS = ["chang2021", "hu2024", "kabir2025", "yu2019"]
+BUILTINS = ["chang2021", "chang2021_close", "hu2024", "kabir2025", "yu2019"]
 
 
 def test_builtins_present_and_valid():
@@ -35,6 +35,25 @@ def test_hu2024_numbers_are_the_papers():
     assert s.process_noise.translational_m2_s4 == 2e-6
     assert s.process_noise.rotational_rad2_s4 == 2.5e-5
     assert s.montecarlo.runs == 500
+
+
+def test_chang2021_is_the_printed_closed_ellipse_in_our_lvlh_frame():
+    """Chang 2021 Sec. 3.1 prints rho_0 = [20, -50, -25] m, rho_dot_0 = [0, -0.0431, -0.0010]
+    m/s in a Hill frame (x radial, y along-track, z orbit normal); in our L (x along-track,
+    y = -orbit normal, z = nadir) that is a closed ellipse with range 10.6-90 m over an orbit
+    (chang2021-notes.md sec. 1.3). Taken as printed in L it drifted ~900 m per orbit."""
+    from tumblenav.simulation import simulate_truth
+
+    s = load_scenario("chang2021")
+    period = 2 * np.pi / s.chaser.orbit.mean_motion_rad_s
+    s = s.with_updates(duration_s=period, rate_hz=0.05, steady_state_window_s=None)
+    truth = simulate_truth(s, np.random.default_rng(0))
+    rng_m = np.linalg.norm(truth.r_L, axis=1)
+    assert np.isclose(rng_m[0], 59.37, atol=0.01)
+    assert 10.4 < rng_m.min() < 10.8 and 89.5 < rng_m.max() < 90.5
+    assert np.linalg.norm(truth.r_L[-1] - truth.r_L[0]) < 1.0  # closed (rounding: ~0.6 m)
+    close = load_scenario("chang2021_close")
+    assert np.allclose(close.target.r0_L_m, 0.15 * np.asarray(s.target.r0_L_m))
 
 
 def test_show_text_round_trips(tmp_path: Path):

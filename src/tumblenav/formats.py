@@ -111,6 +111,7 @@ def _history(layout: StateLayout, n: int = 2) -> EstimateHistory:
 
 def example_files() -> dict[str, xr.Dataset]:
     """truth.nc, both measurements.nc and estimates.nc of every estimator, as written."""
+    from tumblenav.measurements import StereoImageMeasurements
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
@@ -118,6 +119,7 @@ def example_files() -> dict[str, xr.Dataset]:
     for name, label in (("hu2024", "stereo"), ("yu2019", "depth")):
         s = load_scenario(name).with_updates(duration_s=2.0, steady_state_window_s=None)
         truth, meas = simulate(s, 0)
+        assert not isinstance(meas, StereoImageMeasurements)  # tracks or clouds here
         if label == "stereo":
             out["truth.nc"] = _written(truth.to_dataset(s.name))
         out[f"measurements.nc ({label})"] = _written(meas.to_dataset(s.name))

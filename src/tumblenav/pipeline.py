@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rich.console import Console
 from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from tumblenav import evaluation, io, sensors
@@ -18,7 +20,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators import base as est_base
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation import metrics
-from tumblenav.measurements import DepthMeasurements, StereoMeasurements
+from tumblenav.measurements import DepthMeasurements, StereoImageMeasurements, StereoMeasurements
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
 from tumblenav.simulation import Truth, run_streams, simulate, simulate_truth
@@ -40,12 +42,51 @@ def run_simulate(
     output = Path(output)
     files = [io.write_netcdf(truth.to_dataset(scenario.name), output / "truth.nc")]
     files.append(_write_scenario(scenario, output))
+    if isinstance(meas, StereoImageMeasurements):
+        with _progress(con) as bar:
+            task = bar.add_task("rendering the stereo images", total=len(meas.t))
+            files += meas.write(
+                output, scenario.name, progress=lambda k: bar.update(task, completed=k + 1)
+            )
+        if plots:
+            files.append(figures.plot_image_pair(meas, output / "images.png", scenario.name))
+        return files
     files.append(io.write_netcdf(meas.to_dataset(scenario.name), output / "measurements.nc"))
     if plots:
         files.append(figures.plot_truth(truth, output / "truth.png", f"{scenario.name}: truth"))
         plot = figures.plot_measurements if scenario.sensor.kind == "stereo" else figures.plot_depth
         files.append(plot(meas, output / "measurements.png", f"{scenario.name}: measurements"))
     return files
+
+
+def _front_end_stage(scenario: Scenario, est, meas, con: Console):
+    """The measurements the estimator consumes (image pairs through the image front end, with
+    a progress bar: it renders and tracks every pair) and the front end's statistics."""
+    from tumblenav.frontends import stages
+
+    if not isinstance(meas, StereoImageMeasurements):
+        return meas, None
+    images = getattr(scenario.sensor, "images", None)
+    settings = images.frontend if images is not None else {}
+    with _progress(con) as bar:
+        task = bar.add_task("finding and tracking features in the images", total=len(meas.t))
+        return stages.prepare(
+            meas,
+            tuple(getattr(est, "consumes", ())),
+            settings,
+            progress=lambda k: bar.update(task, completed=k + 1),
+        )
+
+
+def _progress(con: Console) -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=con,
+        transient=True,
+    )
 
 
 def _write_scenario(scenario: Scenario, output: Path) -> Path:
@@ -84,6 +125,38 @@ def _rig_differences(file_rig, scenario_rig) -> list[str]:
     return out
 
 
+def _load_images(folder: Path, ds, scenario: Scenario):
+    """Stereo image pairs named by ``folder/measurements.nc``, checked against the scenario's
+    rig like tracks; the first pair is read at once so that a missing or mis-sized image is an
+    error before any work (the others are read, and checked, as they are used)."""
+    path = folder / "measurements.nc"
+    if scenario.sensor.kind != "stereo":
+        raise InputError(
+            f"holds stereo images, but scenario {scenario.name} has a {scenario.sensor.kind} "
+            "sensor: give the scenario the data were taken with",
+            str(path),
+        )
+    try:
+        meas = StereoImageMeasurements.from_dataset(ds, folder)
+    except (KeyError, ValueError, IndexError, TypeError) as exc:
+        raise InputError(f"malformed measurements ({exc})", str(path)) from None
+    diff = _rig_differences(meas.rig, sensors.make_rig(scenario.sensor))
+    if diff:
+        raise InputError(
+            f"taken with another stereo rig than scenario {scenario.name}'s: " + "; ".join(diff),
+            str(path),
+        )
+    if not np.isfinite(meas.noise_px) or meas.noise_px <= 0:
+        meas = dataclasses.replace(
+            meas, noise_px=scenario.sensor.noise.sigma_px(scenario.sensor.focal_px)
+        )
+    if len(meas.t):
+        meas.source.pair(0)
+    truth_path = folder / "truth.nc"
+    truth = Truth.from_dataset(io.read_netcdf(truth_path)) if truth_path.is_file() else None
+    return meas, truth
+
+
 def _load_measurements(folder: Path, scenario: Scenario):
     """Read ``folder/measurements.nc`` (and ``truth.nc`` if present), checked against the
     scenario: the sensor kind, the rig and its calibration, the noise the estimators weight
@@ -91,10 +164,14 @@ def _load_measurements(folder: Path, scenario: Scenario):
     folder = Path(folder)
     path = folder / "measurements.nc"
     ds = io.read_netcdf(path)
+    if "left_image" in ds.variables:
+        return _load_images(folder, ds, scenario)
     kind = "stereo" if "uv" in ds.variables else "depth" if "points" in ds.variables else None
     if kind is None:
         raise InputError(
-            "holds neither stereo tracks (variable uv) nor depth point clouds (points)", str(path)
+            "holds neither stereo tracks (variable uv), stereo images (left_image) nor depth "
+            "point clouds (points)",
+            str(path),
         )
     if kind != scenario.sensor.kind:
         raise InputError(
@@ -172,6 +249,7 @@ def run_estimate(
                 f"scenario {scenario.name}: {scenario.sensor.kind} measurements are "
                 f"not simulated yet, so {estimator} cannot run on it"
             )
+    meas, frontend_stats = _front_end_stage(scenario, est, meas, con)
     if getattr(est, "compiled", False) and not kernels_compiled():
         con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
     with con.status(f"{estimator} on {scenario.name} ({len(meas.t)} epochs)"):
@@ -191,6 +269,8 @@ def run_estimate(
     }
     if measurements is not None:
         summary["measurements"] = str(Path(measurements) / "measurements.nc")
+    if frontend_stats is not None:
+        summary["frontend"] = frontend_stats
     if r is not None:
         summary["rmse"] = {
             k: metrics.rmse_over_time(v, r.t, scenario.window_s) for k, v in r.errors.items()

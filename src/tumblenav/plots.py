@@ -308,6 +308,27 @@ def plot_truth(truth, path: str | Path, title: str = "") -> Path:
     return save(fig, path)
 
 
+def plot_image_pair(meas, path: str | Path, title: str = "") -> Path:
+    """The stereo image pairs at the start, the middle and the end of a run (8-bit, as the
+    cameras gave them), left beside right."""
+    n = len(meas.t)
+    ks = sorted({0, n // 2, n - 1})
+    fig, axes = plt.subplots(len(ks), 2, figsize=(10, 4.6 * len(ks)), squeeze=False)
+    for row, k in enumerate(ks):
+        pair = meas.source.pair(k)
+        for cam, name in enumerate(("left", "right")):
+            ax = axes[row, cam]
+            img = pair[cam]
+            h, w = img.shape
+            # pixel (i, j) covers [i, i+1) x [j, j+1) in tumblenav's (u, v)
+            ax.imshow(img, cmap="gray", vmin=0, vmax=255, extent=(0, w, h, 0))
+            ax.set_title(f"{name} camera, t = {meas.t[k]:.1f} s", fontsize=9)
+            ax.set_xlabel("u [px]")
+            ax.set_ylabel("v [px]")
+    fig.suptitle(title or "stereo images")
+    return save(fig, path)
+
+
 def plot_measurements(meas, path: str | Path, title: str = "") -> Path:
     """Feature tracks in the left and right images, and per-feature visibility over time."""
     fig = plt.figure(figsize=(11, 8))

@@ -266,6 +266,53 @@ class NoiseConfig(_Model):
         return float(self.angular_rad) * focal_px
 
 
+class ImageNoiseConfig(_Model):
+    """The camera's noise chain (Basilisk's camera module is the reference), applied in this
+    order to the rendered irradiance: photon (shot) noise, dark current, read noise, blur,
+    dead and hot pixels, 8-bit quantisation. Each step is off at its zero value."""
+
+    full_well_e: float = Field(
+        20000.0, gt=0, description="electrons at 8-bit full scale (sets the shot noise)"
+    )
+    shot: bool = Field(True, description="Poisson photon noise on the signal electrons")
+    read_noise_e: float = Field(10.0, ge=0, description="Gaussian read noise, electrons rms")
+    dark_current_e: float = Field(5.0, ge=0, description="mean dark electrons per frame (Poisson)")
+    blur_sigma_px: float = Field(0.0, ge=0, description="Gaussian blur (optics, defocus), px")
+    dead_pixel_fraction: float = Field(0.0, ge=0, le=1, description="pixels stuck at 0")
+    hot_pixel_fraction: float = Field(0.0, ge=0, le=1, description="pixels stuck at full scale")
+
+
+class ImagesConfig(_Model):
+    """Render stereo images of the target (Chang 2021) instead of projecting feature points:
+    the image front end finds and tracks features in them for the estimators."""
+
+    sun_direction_I: Vec3 | None = Field(
+        None,
+        description="unit vector towards the sun, inertial; default: behind the chaser at the "
+        "start, 30 deg off the line of sight (the target's camera-facing side is lit)",
+    )
+    eclipse: bool = Field(
+        True, description="the Earth's shadow (cylinder) on the chaser's orbit gives dark frames"
+    )
+    exposure: float = Field(
+        0.8, gt=0, description="image level (fraction of full scale) of a white face lit head-on"
+    )
+    ambient: float = Field(
+        0.02, ge=0, le=1, description="ambient light (Earth shine) as a fraction of the sun's"
+    )
+    supersample: int = Field(1, ge=1, le=4, description="rays per pixel side (anti-aliasing)")
+    texture: Literal["procedural", "mesh"] = Field(
+        "procedural",
+        description="'procedural': MLI foil and solar cells; 'mesh': the mesh file's own texture",
+    )
+    noise: ImageNoiseConfig | None = Field(
+        ImageNoiseConfig(), description="the camera's noise chain; null: noise-free images"
+    )
+    frontend: dict[str, Any] = Field(
+        {}, description="settings of the image front end (docs/formats.md: image front end)"
+    )
+
+
 class StereoSensorConfig(_Model):
     kind: Literal["stereo"] = "stereo"
     rig: Literal["parallel", "convergent"] = "parallel"
@@ -283,7 +330,13 @@ class StereoSensorConfig(_Model):
     toe_in_deg: float = Field(
         0.0, ge=0, lt=45, description="convergent rig: inward tilt of each camera"
     )
-    noise: NoiseConfig
+    noise: NoiseConfig = Field(
+        description="feature localisation noise: of the simulated pixels, or with `images` the "
+        "1-sigma the estimators assume for the corners the front end finds"
+    )
+    images: ImagesConfig | None = Field(
+        None, description="render images and track features in them (Chang 2021)"
+    )
 
     @field_validator("baseline_m")
     @classmethod
@@ -305,6 +358,12 @@ class StereoSensorConfig(_Model):
             raise ValueError("give focal_length_px or fov_deg")
         if self.rig == "parallel" and self.toe_in_deg != 0:
             raise ValueError("toe_in_deg is only for rig: convergent")
+        if self.principal_point_px is not None:
+            (cu, cv), (w, h) = self.principal_point_px, self.resolution_px
+            if not (0 <= cu <= w and 0 <= cv <= h):
+                raise ValueError(
+                    f"principal point ({cu:g}, {cv:g}) px lies outside the {w} x {h} px image"
+                )
         return self
 
     @property
@@ -409,8 +468,15 @@ class Scenario(_Model):
                 raise ValueError(
                     "steady_state_window_s must satisfy 0 <= start < end <= duration_s"
                 )
-        if self.sensor.kind == "stereo" and self.target.features_T_m is None:
-            raise ValueError("target.features_T_m: a stereo sensor needs feature points")
+        if (
+            self.sensor.kind == "stereo"
+            and self.sensor.images is None
+            and self.target.features_T_m is None
+        ):
+            raise ValueError(
+                "target.features_T_m: a stereo sensor needs feature points (or sensor.images, "
+                "to find features in rendered images)"
+            )
         return self
 
     @property

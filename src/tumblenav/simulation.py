@@ -24,7 +24,13 @@ from tumblenav import dynamics, sensors
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.frames import lvlh_axes
-from tumblenav.measurements import DepthMeasurements, StereoMeasurements
+from tumblenav.measurements import (
+    STEREO_IMAGES,
+    DepthMeasurements,
+    StereoImageMeasurements,
+    StereoMeasurements,
+    kind_of,
+)
 from tumblenav.measurements._attrs import _a
 from tumblenav.scenario import (
     DepthSensorConfig,
@@ -266,7 +272,7 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
         cr, cv = np.array(rel.chaser_r_I), np.array(rel.chaser_v_I)
         q_LI = rot.matrix_to_quat(np.swapaxes(lvlh_axes(cr, cv), -1, -2))
     if scenario.chaser.attitude == "target-pointing":
-        R_LC = sensors.target_pointing_R_LC(r_L)
+        R_LC = _target_pointing(scenario, r_L)
     else:
         R_LC = np.broadcast_to(scenario.chaser.R_LC_fixed, (n, 3, 3))
     q_CL = rot.matrix_to_quat(np.swapaxes(R_LC, -1, -2))
@@ -286,6 +292,21 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
         inertia_T=inertia,
         mass_centre_offset_T=np.asarray(tg.mass_centre_offset_T_m, float),
     )
+
+
+def _target_pointing(scenario: Scenario, r_L: Array) -> Array:
+    """``R_LC`` of a rig that keeps the target centred: the rig's ``y`` axis points at the
+    target from the rig origin (the left camera); for a convergent rig, from the midpoint of
+    the two cameras, so that the target sits symmetrically between the two toed-in views
+    instead of ``toe_in_deg`` off the left camera's centre (3 fixed-point steps: the offset
+    is a baseline against a range of metres)."""
+    R_LC = sensors.target_pointing_R_LC(r_L)
+    cfg = scenario.sensor
+    if isinstance(cfg, StereoSensorConfig) and cfg.rig == "convergent":
+        mid_C = np.array([cfg.baseline_m / 2, 0.0, 0.0])
+        for _ in range(3):
+            R_LC = sensors.target_pointing_R_LC(r_L - R_LC @ mid_C)
+    return R_LC
 
 
 def visibility(scenario: Scenario, truth: Truth, rig: sensors.StereoRig) -> NDArray[np.bool_]:
@@ -352,16 +373,10 @@ def simulate_depth(
         cfg.max_range_m,
     )
     model = target_model(scenario)
-    R_CL = rot.quat_to_matrix(truth.q_CL)
-    R_LT = truth.R_LT
-    # model frame M is parallel to T, its origin at -b in T (b: mass-centre offset)
-    p_MinL = truth.r_L - np.einsum("tij,j->ti", R_LT, truth.mass_centre_offset_T)
+    R_SM, p_MinS = model_pose_in_rig(truth)
     clouds, masks = [], []
     for k in range(len(truth.t)):
-        R_SM = R_CL[k] @ R_LT[k]
-        pts, ok = scan(
-            sensor, model, R_SM, R_CL[k] @ p_MinL[k], rng_sensor, on_target=cfg.on_target
-        )
+        pts, ok = scan(sensor, model, R_SM[k], p_MinS[k], rng_sensor, on_target=cfg.on_target)
         clouds.append(pts)
         masks.append(ok)
     # keep only the returns, padded to a common length (missing = NaN, explicit mask)
@@ -382,12 +397,119 @@ def simulate_depth(
     )
 
 
+def model_pose_in_rig(truth: Truth) -> tuple[Array, Array]:
+    """``R_CM`` (n,3,3) and ``p_MinC`` (n,3): the target model frame M (parallel to T, its origin
+    at ``-b`` in T) in the rig frame C at every epoch."""
+    R_CL = rot.quat_to_matrix(truth.q_CL)
+    R_LT = truth.R_LT
+    p_MinL = truth.r_L - np.einsum("tij,j->ti", R_LT, truth.mass_centre_offset_T)
+    return R_CL @ R_LT, (R_CL @ p_MinL[:, :, None])[:, :, 0]
+
+
+def sun_in_rig(scenario: Scenario, truth: Truth) -> Array:
+    """(n,3): the unit vector towards the sun in C at every epoch; NaN rows in eclipse."""
+    from tumblenav.frames import R_EARTH_M
+
+    cfg = getattr(scenario.sensor, "images", None)
+    if cfg is None:
+        raise InputError(f"scenario {scenario.name} does not render images (sensor.images)")
+    R_LI = rot.quat_to_matrix(truth.q_LI)
+    if cfg.sun_direction_I is not None:
+        sun_I = np.asarray(cfg.sun_direction_I, float)
+    else:  # behind the chaser at the start, 30 deg off the line of sight (about L's y)
+        back_L = -truth.r_L[0] / np.linalg.norm(truth.r_L[0])
+        sun_I = R_LI[0].T @ (rot.exp_map(np.radians(30.0) * np.array([0.0, 1.0, 0.0])) @ back_L)
+    norm = np.linalg.norm(sun_I)
+    if not norm > 0:
+        raise InputError("sensor.images.sun_direction_I must be a nonzero vector")
+    sun_I = sun_I / norm
+    sun_C = np.einsum("tij,tjk,k->ti", rot.quat_to_matrix(truth.q_CL), R_LI, sun_I)
+    if cfg.eclipse and scenario.chaser.orbit is not None:
+        r = truth.chaser_r_I  # cylindrical Earth shadow
+        along = r @ sun_I
+        perp = np.linalg.norm(r - along[:, None] * sun_I, axis=1)
+        sun_C[(along < 0) & (perp < R_EARTH_M)] = np.nan
+    return sun_C
+
+
+@dataclass(frozen=True)
+class RenderedFrames:
+    """The image pairs of a simulated run, rendered when asked for (a run's images do not fit
+    in memory); epoch ``k``'s noise comes from its own stream, so any order gives the same
+    pixels."""
+
+    renderer: object
+    R_CM: Array
+    p_MinC: Array
+    sun_C: Array
+    entropy: int
+
+    def __len__(self) -> int:
+        return len(self.R_CM)
+
+    def pair(self, k: int):
+        sun = self.sun_C[k]
+        rng = np.random.default_rng([self.entropy, k])
+        out = self.renderer.render(  # type: ignore[attr-defined]
+            self.R_CM[k], self.p_MinC[k], None if np.isnan(sun).any() else sun, rng, truth=False
+        )
+        return out.images[0], out.images[1]
+
+
+def image_renderer(scenario: Scenario):
+    """The renderer of the scenario's images (target model, rig, light and camera noise)."""
+    from tumblenav.sensors import render
+
+    cfg = scenario.sensor
+    assert isinstance(cfg, StereoSensorConfig) and cfg.images is not None
+    im = cfg.images
+    noise = None if im.noise is None else render.ImageNoise(**im.noise.model_dump())
+    settings = render.RenderSettings(
+        exposure=im.exposure,
+        ambient=im.ambient,
+        supersample=im.supersample,
+        texture=im.texture,
+        noise=noise,
+    )
+    return render.StereoRenderer(target_model(scenario), sensors.make_rig(cfg), settings)
+
+
+def simulate_images(
+    scenario: Scenario, truth: Truth, rng_sensor: np.random.Generator
+) -> StereoImageMeasurements:
+    """Stereo image pairs of the target at the true pose (Chang 2021 Sec. 3), rendered lazily."""
+    cfg = scenario.sensor
+    if not isinstance(cfg, StereoSensorConfig) or cfg.images is None:
+        raise InputError(f"scenario {scenario.name} does not render images (sensor.images)")
+    R_CM, p_MinC = model_pose_in_rig(truth)
+    frames = RenderedFrames(
+        image_renderer(scenario),
+        R_CM,
+        p_MinC,
+        sun_in_rig(scenario, truth),
+        int(rng_sensor.integers(2**62)),
+    )
+    return StereoImageMeasurements(
+        t=truth.t,
+        q_CL=truth.q_CL,
+        q_LI=truth.q_LI,
+        rig=sensors.make_rig(cfg),
+        noise_px=cfg.noise.sigma_px(cfg.focal_px),
+        source=frames,
+    )
+
+
+Measurements = StereoMeasurements | DepthMeasurements | StereoImageMeasurements
+
+
 def simulate(
     scenario: Scenario, seed: int | np.random.SeedSequence | None = None
-) -> tuple[Truth, StereoMeasurements | DepthMeasurements]:
+) -> tuple[Truth, Measurements]:
     """Truth and measurements of one run; ``seed`` defaults to the scenario's base seed."""
     streams = run_streams(scenario.montecarlo.seed if seed is None else seed)
     truth = simulate_truth(scenario, streams["features"])
+    if kind_of(scenario.sensor) == STEREO_IMAGES:
+        return truth, simulate_images(scenario, truth, streams["sensor"])
     if scenario.sensor.kind == "stereo":
         return truth, simulate_stereo(scenario, truth, streams["sensor"])
     return truth, simulate_depth(scenario, truth, streams["sensor"])

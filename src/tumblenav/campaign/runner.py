@@ -59,14 +59,20 @@ def evaluate_runs(
     scenario: Scenario, estimator_name: str, base_seed: int, ks: Sequence[int]
 ) -> list[tuple[int, Any, str | None]]:
     """Simulate, estimate and evaluate runs ``ks``; returns (k, RunErrors | None, error)."""
+    from tumblenav.frontends import stages
+
     est = est_base.get(estimator_name)
     context = context_from_scenario(scenario)  # what the estimator may know: no truth
+    consumes = tuple(getattr(est, "consumes", ()))
+    images = getattr(scenario.sensor, "images", None)
     sims = []
     out: list[tuple[int, Any, str | None]] = []
     for k in ks:
         try:
             ss = run_seed(base_seed, k)
             truth, meas = simulate(scenario, ss)
+            # image pairs: found and tracked features (the image front end), else as they are
+            meas, _ = stages.prepare(meas, consumes, images.frontend if images else None)
             sims.append((k, truth, meas, run_streams(ss)["estimator"]))
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded, not fatal
             out.append((k, None, _short(exc)))

@@ -384,15 +384,19 @@ def get_for(name: str, scenario: Any) -> Estimator:
     """The estimator ``name``, checked against ``scenario`` (:meth:`Estimator.check`): an
     :class:`InputError` before any work if it cannot run there."""
     from tumblenav.estimators.context import context_from_scenario
-    from tumblenav.measurements import KINDS
+    from tumblenav.measurements import CONVERTS, kind_of, runs_on
 
     est = get(name)
-    given = KINDS.get(scenario.sensor.kind, scenario.sensor.kind)
+    given = kind_of(scenario.sensor)
     consumes = tuple(getattr(est, "consumes", ()) or ())
-    if consumes and given not in consumes:
+    if consumes and not runs_on(consumes, given):
         raise InputError(
             f"{name} runs on {' or '.join(consumes)}; scenario {scenario.name}'s "
             f"{scenario.sensor.kind} sensor gives {given}"
         )
+    if given in CONVERTS and given not in consumes:  # the front end's settings, before work
+        from tumblenav.frontends.stages import image_frontend_tuning
+
+        image_frontend_tuning(scenario.sensor.images.frontend)
     est.check(context_from_scenario(scenario))
     return est

@@ -36,7 +36,6 @@ class StereoMeasurements:
         from tumblenav.io import with_coordinates
 
         rig = self.rig
-        cams = (rig.left, rig.right)
         ds = xr.Dataset(
             {
                 "uv": (
@@ -67,31 +66,7 @@ class StereoMeasurements:
                     self.q_LI,
                     _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
                 ),
-                "R_CkC": (
-                    ("camera", "row", "col"),
-                    np.stack([c.R_CkC for c in cams]),
-                    _a("1", "rotation from the rig frame C into the camera frame"),
-                ),
-                "p_CkinC": (
-                    ("camera", "xyz"),
-                    np.stack([c.p_CkinC for c in cams]),
-                    _a("m", "camera centre in the rig frame C"),
-                ),
-                "focal_px": (
-                    ("camera",),
-                    np.array([c.focal_px for c in cams]),
-                    _a("px", "focal length"),
-                ),
-                "principal_point_px": (
-                    ("camera", "pixel"),
-                    np.array([c.principal_point_px for c in cams], dtype=float),
-                    _a("px", "principal point (cu, cv)"),
-                ),
-                "resolution_px": (
-                    ("camera", "pixel"),
-                    np.array([c.resolution_px for c in cams], dtype=float),
-                    _a("px", "image size (W, H)"),
-                ),
+                **rig_variables(rig),
             },
             attrs={
                 "title": "tumblenav stereo measurements",
@@ -99,30 +74,14 @@ class StereoMeasurements:
                 "rig": rig.kind,
                 "baseline_m": rig.baseline_m,
                 "noise_px": self.noise_px,
-                "camera_model": "pinhole; camera axes x right, y optical axis, z = x cross y; "
-                "u = cu + f x/y, v = cv + f z/y",
+                "camera_model": CAMERA_MODEL,
             },
         )
         return with_coordinates(ds, time=self.t, feature=np.arange(self.uv.shape[2]))
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> StereoMeasurements:
-        cams = []
-        for k in range(2):
-            cu, cv = (float(x) for x in ds["principal_point_px"].values[k])
-            width, height = (int(x) for x in ds["resolution_px"].values[k])
-            cams.append(
-                sensors.Camera(
-                    focal_px=float(ds["focal_px"].values[k]),
-                    principal_point_px=(cu, cv),
-                    resolution_px=(width, height),
-                    R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
-                    p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
-                )
-            )
-        rig = sensors.StereoRig(
-            left=cams[0], right=cams[1], kind=str(ds.attrs.get("rig", "parallel"))
-        )
+        rig = rig_from_dataset(ds)
         return cls(
             t=np.asarray(ds["time"].values, dtype=float),
             uv=np.asarray(ds["uv"].values, dtype=float),
@@ -132,3 +91,58 @@ class StereoMeasurements:
             rig=rig,
             noise_px=float(ds.attrs.get("noise_px", np.nan)),
         )
+
+
+CAMERA_MODEL = (
+    "pinhole; camera axes x right, y optical axis, z = x cross y; u = cu + f x/y, v = cv + f z/y"
+)
+
+
+def rig_variables(rig: sensors.StereoRig) -> dict[str, tuple]:
+    """The rig's calibration as dataset variables (shared by every stereo measurement file)."""
+    cams = (rig.left, rig.right)
+    return {
+        "R_CkC": (
+            ("camera", "row", "col"),
+            np.stack([c.R_CkC for c in cams]),
+            _a("1", "rotation from the rig frame C into the camera frame"),
+        ),
+        "p_CkinC": (
+            ("camera", "xyz"),
+            np.stack([c.p_CkinC for c in cams]),
+            _a("m", "camera centre in the rig frame C"),
+        ),
+        "focal_px": (
+            ("camera",),
+            np.array([c.focal_px for c in cams]),
+            _a("px", "focal length"),
+        ),
+        "principal_point_px": (
+            ("camera", "pixel"),
+            np.array([c.principal_point_px for c in cams], dtype=float),
+            _a("px", "principal point (cu, cv)"),
+        ),
+        "resolution_px": (
+            ("camera", "pixel"),
+            np.array([c.resolution_px for c in cams], dtype=float),
+            _a("px", "image size (W, H)"),
+        ),
+    }
+
+
+def rig_from_dataset(ds: xr.Dataset) -> sensors.StereoRig:
+    """The rig of a stereo measurement file (:func:`rig_variables`, attribute ``rig``)."""
+    cams = []
+    for k in range(2):
+        cu, cv = (float(x) for x in ds["principal_point_px"].values[k])
+        width, height = (int(x) for x in ds["resolution_px"].values[k])
+        cams.append(
+            sensors.Camera(
+                focal_px=float(ds["focal_px"].values[k]),
+                principal_point_px=(cu, cv),
+                resolution_px=(width, height),
+                R_CkC=np.asarray(ds["R_CkC"].values[k], dtype=float),
+                p_CkinC=np.asarray(ds["p_CkinC"].values[k], dtype=float),
+            )
+        )
+    return sensors.StereoRig(left=cams[0], right=cams[1], kind=str(ds.attrs.get("rig", "parallel")))
