@@ -82,17 +82,25 @@ def evaluate_runs(
             p_every = evaluation.nees_every(sims[0][2].t)  # the covariance where NEES needs it
             hists = batch(context, [s[2] for s in sims], [s[3] for s in sims], p_every=p_every)
             for (k, truth, *_), h in zip(sims, hists, strict=True):
-                out.append((k, (evaluation.evaluate_run(h, truth), h.skipped), None))
+                out.append((k, _evaluated(h, truth, scenario), None))
             return out
         except Exception:  # noqa: BLE001 - fall back to one run at a time to isolate failures
             out = [o for o in out if o[1] is None]
     for k, truth, meas, rng in sims:
         try:
             hist = est.run(context, meas, rng)
-            out.append((k, (evaluation.evaluate_run(hist, truth), hist.skipped), None))
+            out.append((k, _evaluated(hist, truth, scenario), None))
         except Exception as exc:  # noqa: BLE001
             out.append((k, None, _short(exc)))
     return out
+
+
+def _evaluated(hist, truth, scenario: Scenario) -> tuple[Any, dict[str, Any]]:
+    """A run's errors and the scalars stored with them: skipped updates by reason, per-axis
+    error moments over the steady-state window (``summary.json`` ``per_axis``)."""
+    r = evaluation.evaluate_run(hist, truth)
+    extras = {f"skipped_{n}": c for n, c in hist.skipped.items()}
+    return r, {**extras, **metrics.axis_moments(r, scenario.window_s)}
 
 
 def _store_results(store: CampaignStore, base_seed: int, results) -> list[int]:
@@ -106,8 +114,8 @@ def _store_results(store: CampaignStore, base_seed: int, results) -> list[int]:
         if res is None:
             store.save_failure(k, base_seed, error or "unknown error")
         else:
-            r, skipped = res
-            store.save_run(k, base_seed, r, {f"skipped_{n}": c for n, c in skipped.items()})
+            r, extras = res
+            store.save_run(k, base_seed, r, extras)
     return [k for k, _, _ in results]
 
 
@@ -383,6 +391,7 @@ def collect(store: CampaignStore, runs: int) -> tuple[np.ndarray, dict[str, np.n
         "nis_dof": np.stack([r.nis_dof for r in rs]),
         "runs": ks,
         "diverged": np.array([bool(x.get("skipped_diverged", 0)) for _, x in loaded]),
+        "extras": [x for _, x in loaded],
     }
     return t, errs, cons
 
@@ -424,6 +433,9 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
             for k, v in per_run.items()
             if np.isfinite(v).any()
         }
+        per_axis = metrics.axis_statistics(cons["extras"])
+        if per_axis:  # mean and spread of each error component over runs and window epochs
+            summary["per_axis"] = per_axis
         summary["runs_diverged"] = int(cons["diverged"].sum())
         summary["nees"] = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
         summary["nis"] = metrics.consistency(cons["nis"], cons["nis_dof"], t, window)

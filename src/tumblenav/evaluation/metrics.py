@@ -14,7 +14,7 @@ summary number is the RMS of that curve over the steady-state window.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,6 +51,58 @@ class RunErrors:
     nees_dof: int
     nis: Array  # (n,)
     nis_dof: Array  # (n,)
+    # per-axis error components (n, 3) of the 3-vector quantities, in summary units (the
+    # attitude's are the rotation-vector error's), for per-axis means and spreads
+    components: dict[str, Array] = field(default_factory=dict)
+
+
+AXIS_QUANTITIES = ("attitude", "rate", "position", "velocity")
+
+
+def error_components(dx: Array, lay) -> dict[str, Array]:
+    """Per-axis error components (..., 3) of the 3-vector quantities in summary units."""
+    out: dict[str, Array] = {}
+    for b in lay.blocks:
+        if b.name in AXIS_QUANTITIES and b.size == 3:
+            key, scale = QUANTITIES[b.name]
+            out[key] = scale * dx[..., lay.err(b.name)]
+    return out
+
+
+def axis_moments(r: RunErrors, window: tuple[float, float]) -> dict[str, float]:
+    """Per-axis sums over the window of one run's error components, as scalars a campaign
+    stores per run (``axis_<quantity>_<x|y|z>_{sum,sq,n}``): over runs they give each axis'
+    mean and standard deviation (:func:`axis_statistics`)."""
+    w = window_mask(r.t, window)
+    out: dict[str, float] = {}
+    for key, c in r.components.items():
+        for i, ax in enumerate("xyz"):
+            v = c[w, i]
+            v = v[np.isfinite(v)]
+            out[f"axis_{key}_{ax}_sum"] = float(v.sum())
+            out[f"axis_{key}_{ax}_sq"] = float(np.sum(v**2))
+            out[f"axis_{key}_{ax}_n"] = float(len(v))
+    return out
+
+
+def axis_statistics(extras: list[dict[str, float]]) -> dict[str, dict[str, list[float]]]:
+    """Mean and standard deviation per axis over all runs and window epochs, from the runs'
+    :func:`axis_moments`: ``{quantity: {"mean": [x, y, z], "std": [x, y, z]}}``."""
+    keys = sorted(
+        {k[5:-6] for e in extras for k in e if k.startswith("axis_") and k.endswith("_x_sum")}
+    )
+    out: dict[str, dict[str, list[float]]] = {}
+    for key in keys:
+        mean, std = [], []
+        for ax in "xyz":
+            n = sum(e.get(f"axis_{key}_{ax}_n", 0.0) for e in extras)
+            s1 = sum(e.get(f"axis_{key}_{ax}_sum", 0.0) for e in extras)
+            s2 = sum(e.get(f"axis_{key}_{ax}_sq", 0.0) for e in extras)
+            m = s1 / n if n else float("nan")
+            mean.append(m)
+            std.append(float(np.sqrt(max(s2 / n - m * m, 0.0) * n / max(n - 1, 1))) if n else m)
+        out[key] = {"mean": mean, "std": std}
+    return out
 
 
 def error_magnitudes(dx: Array, lay) -> dict[str, Array]:
@@ -86,6 +138,7 @@ def run_errors(history: EstimateHistory, x_true: Array, nees_every: int = 1) -> 
         nees_dof=lay.dim,
         nis=history.nis,
         nis_dof=history.nis_dof,
+        components=error_components(dx, lay),
     )
 
 
