@@ -11,6 +11,7 @@ figure instead of saving it, so that tests and notebooks can look at what is dra
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -755,4 +756,109 @@ def plot_depth(meas, path: str | Path, title: str = "") -> Path:
     ax1.set_ylabel("returns per scan")
     ax1.grid(alpha=0.3)
     fig.suptitle(title or "depth measurements")
+    return save(fig, path)
+
+
+def plot_axis_spread(
+    t: Array,
+    components: Mapping[str, Array],
+    path: str | Path,
+    title: str = "",
+    window: Span | None = None,
+    max_runs_drawn: int = 30,
+) -> Path:
+    """Per-axis errors of a campaign (Chang 2021 Figs. 17 and 19): every run thin, their mean
+    and the mean +-3 standard deviations over runs, one row per quantity and one column per
+    axis. ``components``: quantity key -> (runs, n, 3)."""
+    keys = [
+        k for k in ("attitude_deg", "rate_deg_s", "position_m", "velocity_m_s") if k in components
+    ]
+    fig, axes = plt.subplots(
+        len(keys), 3, figsize=(12, 2.6 * max(len(keys), 1)), sharex=True, squeeze=False
+    )
+    t = np.asarray(t, dtype=float)
+    for row, key in enumerate(keys):
+        c = np.asarray(components[key], dtype=float)
+        with warnings.catch_warnings():  # all-NaN epochs: before any run has an estimate
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(c, axis=0)
+            std = np.nanstd(c, axis=0)
+        for col, ax_name in enumerate("xyz"):
+            ax = axes[row, col]
+            for run in c[:max_runs_drawn, :, col]:
+                ax.plot(t, run, color="0.7", lw=0.5)
+            ax.plot(t, mean[:, col], color="C0", lw=1.2, label="mean over runs")
+            ax.plot(
+                t, mean[:, col] + 3 * std[:, col], "--", color="C3", lw=1, label="±3σ over runs"
+            )
+            ax.plot(t, mean[:, col] - 3 * std[:, col], "--", color="C3", lw=1)
+            if window is not None:
+                ax.axvspan(window[0], window[1], color="0.93", zorder=-1)
+                w = (t >= window[0]) & (t <= window[1])
+                span = np.nanmax(np.abs(c[:, w, col])) if np.isfinite(c[:, w, col]).any() else None
+                if span:
+                    ax.set_ylim(-1.3 * span, 1.3 * span)
+            ax.grid(alpha=0.3)
+            ax.set_title(f"{quantity_label(key)}, {ax_name}", fontsize=9)
+            if row == len(keys) - 1:
+                ax.set_xlabel("time [s]")
+        axes[row, 0].legend(loc="upper right", fontsize=7)
+    fig.suptitle(title or "errors per axis over runs")
+    fig.tight_layout()
+    return save(fig, path)
+
+
+def plot_feature_counts(
+    t: Array, counts: Mapping[str, Array], path: str | Path, title: str = ""
+) -> Path:
+    """Features over time in the image front end (held, tracked, matched, new, ...)."""
+    fig, ax = plt.subplots(figsize=(10, 3.8))
+    for label, v in counts.items():
+        ax.plot(t, v, lw=1, label=label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("features")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8, ncol=3)
+    ax.set_title(title or "features in the image front end")
+    return save(fig, path)
+
+
+def plot_tracked_frame(
+    images: tuple[Array, Array],
+    uv: Array,
+    tails: Array | None,
+    path: str | Path,
+    title: str = "",
+    epilines: Array | None = None,
+) -> Path:
+    """One stereo frame with its features (Chang 2021 Figs. 14-15): the left image with each
+    tracked feature and its track over the last frames (``tails``: (frames, 2... m, 2) left
+    pixels, NaN where none), the right image with the matched features, the same colour per
+    feature; ``epilines`` (m, 3) optional lines a u + b v + c = 0 in the right image."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.8))
+    m = uv.shape[1]
+    colours = plt.get_cmap("hsv")(np.linspace(0, 1, max(m, 1), endpoint=False))
+    for cam, name in enumerate(("left", "right")):
+        ax = axes[cam]
+        img = images[cam]
+        h, w = img.shape
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255, extent=(0, w, h, 0))
+        ax.scatter(
+            uv[cam, :, 0], uv[cam, :, 1], s=14, facecolors="none", edgecolors=colours, lw=0.8
+        )
+        if cam == 0 and tails is not None:
+            for j in range(m):
+                ax.plot(tails[:, j, 0], tails[:, j, 1], "-", color=colours[j], lw=0.8)
+        if cam == 1 and epilines is not None:
+            for j, (a, b, c) in enumerate(epilines[:12]):
+                if abs(b) > 1e-12:
+                    us = np.array([0.0, w])
+                    ax.plot(us, -(a * us + c) / b, "-", color=colours[j], lw=0.5, alpha=0.7)
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_xlabel("u [px]")
+        ax.set_ylabel("v [px]")
+        ax.set_title(f"{name}: {m} {'tracked' if cam == 0 else 'matched'} features", fontsize=9)
+    fig.suptitle(title or "tracked and matched features")
+    fig.tight_layout()
     return save(fig, path)

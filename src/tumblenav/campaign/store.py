@@ -116,6 +116,11 @@ class CampaignStore:
         )
         for key, v in extra.items():
             arrays[f"extra_{key}"] = np.asarray(v)
+        if r.components:  # per-axis errors at about 1 Hz, for figures of their spread over runs
+            every = max(1, int(round(1.0 / float(np.median(np.diff(r.t)))))) if len(r.t) > 1 else 1
+            arrays["cmp_t"] = r.t[::every]
+            for key, c in r.components.items():
+                arrays[f"cmp_{key}"] = np.asarray(c[::every], dtype=np.float32)
         path = self.run_path(k)
 
         def _write(tmp: Path) -> None:
@@ -138,6 +143,15 @@ class CampaignStore:
 
     def failures(self) -> list[dict[str, Any]]:
         return [io.read_json(p) for p in sorted(self.runs_dir.glob("run_*.failed.json"))]
+
+    def load_components(self, k: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Run k's per-axis errors at about 1 Hz: times (m,) and ``{quantity: (m, 3)}``
+        (empty for a run stored without them)."""
+        with np.load(self.run_path(k)) as z:
+            if "cmp_t" not in z.files:
+                return np.zeros(0), {}
+            comps = {key[4:]: z[key].astype(float) for key in z.files if key.startswith("cmp_")}
+            return comps.pop("t"), comps
 
     def load_run(self, k: int) -> RunErrors:
         return self.load(k)[0]
