@@ -1,0 +1,180 @@
+"""Settings of the image front end (Chang 2021 Sec. 2.3-2.4 and 3.3): :class:`ImageFrontEndTuning`.
+
+Chang 2021 gives almost none of these numbers (notes sec. 1.9): every default the paper does not
+state is ours and marked ``# tumblenav default (Chang 2021 silent)``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = ["DEFAULT_TUNING", "ImageFrontEndTuning"]
+
+
+class ImageFrontEndTuning(BaseModel):
+    """Settings of the stereo-image front end: FAST corners, pyramidal LK tracking of the left
+    image, left -> right matching along the calibrated rig's epipolar line, and Chang 2021's
+    feature management (IDs, survival time, n_min / n_max, maximum age)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # --- detection (Chang 2021 Sec. 2.3: FAST segment test, ranked by response) ---
+    fast_threshold: int = Field(
+        20,  # tumblenav default (Chang 2021 silent)
+        ge=1,
+        le=254,
+        description="FAST intensity threshold (grey levels) of OpenCV's TYPE_9_16 segment test, "
+        "with non-maximum suppression",
+    )
+    response: Literal["opencv", "sad"] = Field(
+        "sad",
+        description="corner ranking: 'sad' is Chang 2021's response (sum of absolute "
+        "differences between the centre pixel and its 16 circle neighbours); 'opencv' is "
+        "OpenCV's FAST score (KeyPoint.response)",
+    )
+    mask_px: int = Field(
+        5,  # Chang 2021 Sec. 2.4: a 5 x 5 pixel mask around each existing feature
+        ge=1,
+        description="side (px) of the square around each existing feature (and each new corner "
+        "taken) inside which no new corner is accepted",
+    )
+    border_px: int = Field(
+        8,  # tumblenav default (Chang 2021 silent)
+        ge=0,
+        description="new corners closer than this (px) to the image border are ignored (the "
+        "match patch must fit in the image)",
+    )
+
+    # --- feature management (Chang 2021 Sec. 2.4, Figs. 6-7) ---
+    n_min: int = Field(
+        120,  # Chang 2021 Sec. 3.3 keeps 120 features; n_min itself is not given
+        ge=0,
+        description="features wanted: each frame fills the vacancy n_min - m with the best new "
+        "matched corners (Chang 2021 Sec. 2.4)",
+    )
+    n_max: int = Field(
+        120,  # Chang 2021 Sec. 3.3: 120 features are maintained
+        ge=1,
+        description="most features kept: above it the (m - n_max) most-tracked ones are "
+        "removed (Chang 2021 Sec. 2.4)",
+    )
+    max_age_frames: int = Field(
+        100,  # tumblenav default (Chang 2021 silent); see the description
+        ge=1,
+        description="a feature is dropped once it has been tracked in more than this many "
+        "frames (its survival time, counting the first; Chang 2021 Sec. 2.4 caps the age but "
+        "gives no number). 100 frames (10 s at 10 Hz, ~50 deg of Chang's tumble) rather than "
+        "the 30 of the notes: longer tracks give the estimators more epochs per registered "
+        "feature and fewer feature IDs, while LK drift stays below the match noise (measured "
+        "in benchmarks/image_frontend.py)",
+    )
+
+    # --- pyramidal Lucas-Kanade, left image k-1 -> k (Chang 2021 Fig. 5) ---
+    lk_window_px: int = Field(
+        21,  # tumblenav default (Chang 2021 silent): OpenCV's default, as in VINS-Mono
+        ge=3,
+        description="side (px) of the LK integration window",
+    )
+    lk_levels: int = Field(
+        3,  # tumblenav default (Chang 2021 silent)
+        ge=0,
+        description="pyramid levels above the full-resolution image (OpenCV maxLevel)",
+    )
+    lk_max_iterations: int = Field(
+        30,  # tumblenav default (Chang 2021 silent)
+        ge=1,
+        description="LK termination: most iterations per pyramid level",
+    )
+    lk_epsilon_px: float = Field(
+        0.01,  # tumblenav default (Chang 2021 silent)
+        gt=0,
+        description="LK termination: smallest update (px)",
+    )
+    lk_min_eigen: float = Field(
+        1e-4,  # tumblenav default (Chang 2021 silent): OpenCV's default
+        gt=0,
+        description="LK minEigThreshold: points whose normalised gradient matrix has a smaller "
+        "eigenvalue are lost (flat regions, black frames)",
+    )
+    fb_max_px: float = Field(
+        0.5,  # tumblenav default (Chang 2021 silent)
+        gt=0,
+        description="forward-backward check: a track k-1 -> k -> k-1 must come back within "
+        "this distance (px) of where it started",
+    )
+
+    # --- left -> right matching along the epipolar line (Chang 2021 Sec. 2.3) ---
+    patch_px: int = Field(
+        11,  # tumblenav default (Chang 2021 silent: no similarity measure is given)
+        ge=3,
+        description="side (px, odd) of the square patch compared by normalised "
+        "cross-correlation; it is sampled along the epipolar direction in both images",
+    )
+    ncc_min: float = Field(
+        0.8,  # tumblenav default (Chang 2021 silent)
+        gt=-1.0,
+        le=1.0,
+        description="lowest accepted normalised cross-correlation of a match",
+    )
+    ncc_unique_margin: float = Field(
+        0.02,  # tumblenav default (Chang 2021 silent)
+        ge=0.0,
+        description="a match searched along the whole epipolar segment is refused when "
+        "another peak (more than one patch away) scores within this margin of the best "
+        "(repetitive texture, Chang 2021's motivation for the epipolar constraint)",
+    )
+    min_patch_std: float = Field(
+        2.0,  # tumblenav default (Chang 2021 silent)
+        ge=0.0,
+        description="a left patch whose grey-level standard deviation is below this is not "
+        "matched (no texture: black frames, saturated regions)",
+    )
+    epipolar_tol_px: float = Field(
+        1.0,  # tumblenav default (Chang 2021 silent)
+        gt=0,
+        description="largest distance (px) of the refined right pixel from the epipolar line "
+        "of the left pixel (known F of the calibrated rig)",
+    )
+    lk_refine: bool = Field(
+        False,  # tumblenav default (Chang 2021 silent): measured worse than the parabola
+        description="refine the NCC match (parabola peak along the epipolar line) with one "
+        "full-resolution LK step from the left to the right image (OPTFLOW_USE_INITIAL_FLOW); "
+        "a refinement that fails, moves by more than epipolar_tol_px or leaves the epipolar "
+        "band is ignored (the NCC match is kept). Off by default: on the synthetic planes of "
+        "tests/test_image_frontend.py it doubled the median error of the convergent rig",
+    )
+    min_depth_m: float = Field(
+        1.0,  # tumblenav default (Chang 2021 silent)
+        gt=0,
+        description="nearest depth (m, along the left optical axis) searched for a new "
+        "feature's match",
+    )
+    max_depth_m: float | None = Field(
+        None,  # tumblenav default (Chang 2021 silent): up to the vanishing point
+        gt=0,
+        description="farthest depth (m) searched for a new feature's match (none: up to the "
+        "vanishing point of the left ray in the right image)",
+    )
+    track_search_px: int = Field(
+        12,  # tumblenav default (Chang 2021 silent)
+        ge=2,
+        description="a tracked feature is searched for in the right image this far (px) either "
+        "side of where its previous depth puts it on the new epipolar line",
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImageFrontEndTuning:
+        if self.n_min > self.n_max:
+            raise ValueError(f"n_min ({self.n_min}) must not exceed n_max ({self.n_max})")
+        if self.patch_px % 2 == 0:
+            raise ValueError(f"patch_px must be odd, got {self.patch_px}")
+        if self.lk_window_px % 2 == 0:
+            raise ValueError(f"lk_window_px must be odd, got {self.lk_window_px}")
+        if self.max_depth_m is not None and not self.max_depth_m > self.min_depth_m:
+            raise ValueError("max_depth_m must exceed min_depth_m")
+        return self
+
+
+DEFAULT_TUNING = ImageFrontEndTuning()  # the defaults (frozen), for argument defaults

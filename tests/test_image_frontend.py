@@ -1,0 +1,468 @@
+"""Image front end (Chang 2021 Sec. 2.3-2.4): FAST + LK + epipolar NCC + feature management.
+
+The scenes are exact: a textured plane at a known pose is rendered into each camera by casting
+the ray of every pixel centre ``(i + 0.5, j + 0.5)`` (tumblenav pixels) to the plane, so the 3D
+point, the right-image correspondence and the motion of every pixel are known.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from tumblenav.errors import InputError
+from tumblenav.frontends.stereo_images import (
+    EpipolarGeometry,
+    ImageFrontEndTuning,
+    ImageTracker,
+    MatchStatus,
+    StereoMatcher,
+    most_tracked_to_remove,
+    track_images,
+)
+from tumblenav.frontends.stereo_images.detection import (
+    FAST_CIRCLE,
+    CornerDetector,
+    feature_mask,
+    sad_response,
+)
+from tumblenav.frontends.stereo_images.matching import parabola_peak, sample_patches
+from tumblenav.frontends.triangulation import triangulate_two_ray
+from tumblenav.measurements.stereo import StereoMeasurements
+from tumblenav.sensors.stereo import convergent_rig, parallel_rig, project
+
+W, H = 320, 240
+F_PX = 300.0
+B_M = 0.4
+
+
+def _rigs():
+    return {
+        "parallel": parallel_rig(F_PX, B_M, (W, H)),
+        "convergent": convergent_rig(F_PX, B_M, np.radians(4.0), (W, H)),
+    }
+
+
+def _texture(seed: int, size: int = 768) -> np.ndarray:
+    """Smoothed noise plus flat rectangles (corners for FAST), grey levels in [1, 255]."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.normal(0.0, 1.0, (size, size)).astype(np.float32), (0, 0), 3.0)
+    tex = 128.0 + 40.0 * tex / tex.std()
+    for _ in range(250):
+        x, y = rng.integers(0, size, 2)
+        w, h = rng.integers(8, 40, 2)
+        tex[y : y + h, x : x + w] = rng.uniform(20.0, 235.0)
+    tex = cv2.GaussianBlur(tex, (0, 0), 1.0)
+    return np.clip(tex, 1.0, 255.0).astype(np.float32)
+
+
+class Plane:
+    """A textured plane: centre ``o`` (C, m), in-plane unit axes ``e1``, ``e2`` (C)."""
+
+    def __init__(self, tex, texel_m, o, e1, e2):
+        self.tex, self.texel = tex, texel_m
+        self.o, self.e1, self.e2 = (np.asarray(x, float) for x in (o, e1, e2))
+        self.n = np.cross(self.e1, self.e2)
+
+    def moved(self, rotvec, t) -> Plane:
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        return Plane(self.tex, self.texel, self.o + np.asarray(t), R @ self.e1, R @ self.e2)
+
+    def hit(self, origin, d):
+        s = ((self.o - origin) @ self.n) / (d @ self.n)
+        return origin + s[..., None] * d, s
+
+    def texel_coords(self, P):
+        c = self.tex.shape[0] / 2 - 0.5
+        return (P - self.o) @ self.e1 / self.texel + c, (P - self.o) @ self.e2 / self.texel + c
+
+    def point(self, a, b):
+        c = self.tex.shape[0] / 2 - 0.5
+        return (
+            self.o
+            + ((a - c) * self.texel)[:, None] * self.e1
+            + ((b - c) * self.texel)[:, None] * self.e2
+        )
+
+
+def _plane(seed: int = 1, yaw_deg: float = 20.0) -> Plane:
+    e1 = Rotation.from_euler("z", yaw_deg, degrees=True).apply([1.0, 0.0, 0.0])
+    return Plane(_texture(seed), 0.006, [0.2, 3.0, 0.0], e1, [0.0, 0.0, 1.0])
+
+
+def _render(rig, plane: Plane, k: int) -> np.ndarray:
+    cam = rig.cameras[k]
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)  # pixel centres, tumblenav
+    cu, cv = cam.principal_point_px
+    d_cam = np.stack([(u - cu) / cam.focal_px, np.ones_like(u), (v - cv) / cam.focal_px], -1)
+    P, s = plane.hit(cam.p_CkinC, d_cam @ cam.R_CkC)
+    a, b = plane.texel_coords(P)
+    a[s <= 0], b[s <= 0] = -10.0, -10.0
+    img = cv2.remap(
+        plane.tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR, borderValue=0
+    )
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _pair(rig, plane):
+    return _render(rig, plane, 0), _render(rig, plane, 1)
+
+
+def _truth(rig, plane, uv_l):
+    """3D points seen at the left pixels and their true right pixels (and whether inside)."""
+    geo = EpipolarGeometry(rig)
+    P, _ = plane.hit(geo.c[0], geo.left_rays(uv_l))
+    uv, inside = project(rig, P)
+    return P, uv[1], inside[1]
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+@pytest.mark.parametrize("kind", ["parallel", "convergent"])
+def test_fundamental_matrix_and_segments(kind):
+    rig = _rigs()[kind]
+    geo = EpipolarGeometry(rig)
+    rng = np.random.default_rng(0)
+    p = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(1.5, 30, 50), rng.uniform(-1, 1, 50)])
+    uv, _ = project(rig, p)
+    x_l = np.column_stack([uv[0], np.ones(50)])
+    x_r = np.column_stack([uv[1], np.ones(50)])
+    assert np.abs(np.einsum("ni,ij,nj->n", x_r, geo.F, x_l)).max() < 1e-9
+    assert geo.epipolar_distance(uv[0], uv[1]).max() < 1e-9
+    lam = geo.left_depth(p)
+    assert np.allclose(geo.right_of_depth(uv[0], lam), uv[1], atol=1e-9)
+    assert np.allclose(geo.triangulate(uv[0], uv[1]), p, atol=1e-9)
+    near, far = geo.right_segments(uv[0], 1.0, None)
+    assert geo.epipolar_distance(uv[0], near).max() < 1e-9
+    assert geo.epipolar_distance(uv[0], far).max() < 1e-9
+    # the true right pixel lies between the near (1 m) and far (vanishing point) ends
+    t = np.sum((uv[1] - near) * (far - near), axis=1) / np.sum((far - near) ** 2, axis=1)
+    assert ((t > 0) & (t < 1)).all()
+    d_l, d_r = geo.directions(uv[0], lam)
+    if kind == "parallel":
+        assert np.allclose(d_l, [1.0, 0.0]) and np.allclose(d_r, [1.0, 0.0])
+
+
+def test_sampling_uses_tumblenav_pixel_centres():
+    img = np.arange(H * W, dtype=np.uint32).reshape(H, W) % 251
+    img = img.astype(np.uint8)
+    i, j = np.array([10, 100, 200]), np.array([20, 50, 230])
+    c = np.column_stack([i + 0.5, j + 0.5])  # tumblenav centres of pixels (i, j)
+    patches = sample_patches(img, c, np.tile([1.0, 0.0], (3, 1)), 1)
+    assert np.array_equal(patches[:, 1, 1], img[j, i])
+    assert np.array_equal(patches[:, 1, 2], img[j, i + 1])  # columns along +u
+    assert np.array_equal(patches[:, 2, 1], img[j + 1, i])  # rows along +v
+
+
+def test_parabola_peak():
+    x0 = 0.3
+    s = 1.0 - (np.array([-1.0, 0.0, 1.0]) - x0) ** 2
+    assert parabola_peak(s[:1], s[1:2], s[2:])[0] == pytest.approx(x0)
+
+
+# ----------------------------------------------------------------------------- detection
+
+
+def test_sad_response_is_chang_definition():
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 256, (20, 20)).astype(np.uint8)
+    r, c = 9, 11
+    expected = sum(abs(int(img[r, c]) - int(img[r + dy, c + dx])) for dx, dy in FAST_CIRCLE)
+    assert sad_response(img, np.array([c]), np.array([r]))[0] == expected
+    assert len({tuple(o) for o in FAST_CIRCLE}) == 16
+    assert np.allclose(np.hypot(*FAST_CIRCLE.T), 3.0, atol=0.2)
+
+
+@pytest.mark.parametrize("response", ["sad", "opencv"])
+def test_detection_respects_mask_and_ranks(response):
+    rig = _rigs()["parallel"]
+    left, _ = _pair(rig, _plane())
+    tu = ImageFrontEndTuning(response=response)
+    existing = np.array([[100.5, 100.5], [200.2, 50.7]])
+    mask = feature_mask((H, W), existing, 5, 8)
+    assert mask[100, 98:103].max() == 0 and mask[100, 103] == 255 and mask[100, 97] == 255
+    uv, resp = CornerDetector(tu).detect(left, mask)
+    assert len(uv) > 100
+    assert np.all(np.diff(resp) <= 0)
+    assert np.allclose(uv % 1.0, 0.5)  # pixel centres in tumblenav pixels
+    cheb = np.abs(np.floor(uv)[:, None, :] - np.floor(existing)[None]).max(axis=2)
+    assert cheb.min() >= 3  # nothing in the 5 x 5 squares
+    assert (uv >= 8).all() and (uv[:, 0] <= W - 8).all() and (uv[:, 1] <= H - 8).all()
+
+
+# ----------------------------------------------------------------------------- matching
+
+
+@pytest.mark.parametrize("kind", ["parallel", "convergent"])
+def test_epipolar_match_and_triangulation_accuracy(kind):
+    rig = _rigs()[kind]
+    plane = _plane()
+    left, right = _pair(rig, plane)
+    tu = ImageFrontEndTuning()
+    uv_l, _ = CornerDetector(tu).detect(left, feature_mask((H, W), np.zeros((0, 2)), 5, 8))
+    uv_l = uv_l[:300]
+    res = StereoMatcher(EpipolarGeometry(rig), tu).match(left, right, uv_l)
+    P, uv_true, inside = _truth(rig, plane, uv_l)
+    ok = res.ok
+    assert ok.mean() > 0.8
+    err = np.hypot(*(res.uv_r - uv_true).T)
+    well_inside = inside & (uv_true[:, 0] > 10) & (uv_true[:, 0] < W - 10)
+    e = err[ok & well_inside]
+    assert np.mean(e < 0.5) >= 0.98 and e.max() < 1.0 and np.median(e) < 0.2
+    assert np.isnan(res.uv_r[~ok]).all()
+    # triangulation: depth error within what the pixel error explains
+    geo = EpipolarGeometry(rig)
+    p = geo.triangulate(uv_l[ok], res.uv_r[ok])
+    depth = geo.left_depth(P[ok])
+    dz = np.abs(geo.left_depth(p) - depth)
+    sel = well_inside[ok]
+    assert np.all(dz[sel] <= depth[sel] ** 2 / (F_PX * B_M) * 1.2 * err[ok][sel] + 1e-6)
+
+
+def _chang_eq31(uv_l, uv_r, f, b, a, pp):
+    """Chang 2021 eq. 31, corrected (stereo module notes: cos a - sin a; arctan^-1 = arctan),
+    in the left camera frame (x right, y = optical axis = the paper's Z, z down)."""
+    ul, vl, ur = uv_l[:, 0], uv_l[:, 1], uv_r[:, 0]
+    T = np.tan(2 * a + np.arctan((pp[0] - ur) / f) - np.pi / 2)
+    Z = f * b * (T * np.cos(a) - np.sin(a)) / (T * (ul - pp[0]) - f)
+    return np.stack([Z * (ul - pp[0]) / f, Z, Z * (vl - pp[1]) / f], axis=-1)
+
+
+def test_chang_eq31_agrees_with_two_ray_triangulation():
+    a = np.radians(10.0)
+    rig = convergent_rig(F_PX, B_M, a, (W, H))
+    pp = rig.left.principal_point_px
+    args = (F_PX, pp, rig.left.R_CkC, rig.left.p_CkinC, rig.right.R_CkC, rig.right.p_CkinC)
+    # exact projections: identical up to rounding
+    rng = np.random.default_rng(4)
+    p = np.column_stack([rng.uniform(-0.5, 1.0, 40), rng.uniform(2, 8, 40), rng.uniform(-1, 1, 40)])
+    uv, _ = project(rig, p)
+    two_ray = triangulate_two_ray(uv[0], uv[1], *args)
+    eq31 = _chang_eq31(uv[0], uv[1], F_PX, B_M, a, pp) @ rig.left.R_CkC  # C0 -> C
+    assert np.allclose(two_ray, p, atol=1e-9) and np.allclose(eq31, p, atol=1e-9)
+    # the front end's matches (v_r ignored by eq. 31): agree within the match noise
+    plane = _plane(yaw_deg=0.0)
+    fr = ImageTracker(rig, ImageFrontEndTuning(n_min=60, n_max=60)).step(*_pair(rig, plane))
+    assert len(fr.ids) == 60
+    eq31 = _chang_eq31(fr.uv[0], fr.uv[1], F_PX, B_M, a, pp) @ rig.left.R_CkC
+    assert np.allclose(fr.p_inC, triangulate_two_ray(fr.uv[0], fr.uv[1], *args))
+    depth = fr.p_inC @ rig.left.R_CkC[1]
+    sigma_depth = depth**2 / (F_PX * B_M)  # m per px of disparity
+    assert np.all(np.linalg.norm(eq31 - fr.p_inC, axis=1) < 0.5 * sigma_depth)
+
+
+def test_flat_patches_are_not_matched():
+    rig = _rigs()["parallel"]
+    flat = np.full((H, W), 90, np.uint8)
+    res = StereoMatcher(EpipolarGeometry(rig), ImageFrontEndTuning()).match(
+        flat, flat, np.array([[100.5, 100.5], [150.5, 60.5]])
+    )
+    assert (res.status == MatchStatus.NO_TEXTURE).all() and np.isnan(res.uv_r).all()
+
+
+# ----------------------------------------------------------------------------- tracking
+
+
+def _material_points(rig, plane, uv_l):
+    """Texture coordinates of the surface seen at the left pixels."""
+    geo = EpipolarGeometry(rig)
+    P, _ = plane.hit(geo.c[0], geo.left_rays(uv_l))
+    return plane.texel_coords(P)
+
+
+@pytest.mark.parametrize("kind", ["parallel", "convergent"])
+def test_lk_tracks_a_known_motion(kind):
+    rig = _rigs()[kind]
+    plane = _plane()
+    tracker = ImageTracker(rig, ImageFrontEndTuning(n_min=80, n_max=80))
+    fr0 = tracker.step(*_pair(rig, plane))
+    a, b = _material_points(rig, plane, fr0.uv[0])
+    moved = plane.moved([0.0, 0.02, 0.01], [0.03, -0.05, 0.02])
+    fr1 = tracker.step(*_pair(rig, moved))
+    assert fr1.stats.tracked >= 75
+    kept = np.searchsorted(fr0.ids, fr1.ids[fr1.age == 2])
+    uv_true, inside = project(rig, moved.point(a[kept], b[kept]))
+    err = np.hypot(*(fr1.uv[0, fr1.age == 2] - uv_true[0]).T)
+    assert np.median(err) < 0.1 and err.max() < 0.5
+    # right pixels of the tracked features still within 0.5 px of their correspondence
+    _, uv_r, _ = _truth(rig, moved, fr1.uv[0])
+    assert np.mean(np.hypot(*(fr1.uv[1] - uv_r).T) < 0.5) >= 0.97
+
+
+def test_forward_backward_rejects_a_corrupted_track():
+    rig = _rigs()["parallel"]
+    plane = _plane()
+    tracker = ImageTracker(rig, ImageFrontEndTuning(n_min=40, n_max=40))
+    fr0 = tracker.step(*_pair(rig, plane))
+    left, right = _pair(rig, plane.moved([0, 0, 0], [0.01, 0.0, 0.0]))
+    u, v = np.floor(fr0.uv[0, 5]).astype(int)
+    left[v - 6 : v + 7, u - 6 : u + 7] = left[v - 6 : v + 7, u - 6 : u + 7][::-1, ::-1].copy()
+    fr1 = tracker.step(left, right)
+    assert fr0.ids[5] not in fr1.ids
+    assert fr1.stats.fb_rejected >= 1 and fr1.stats.lost == 0
+    # an uncorrupted run keeps every track
+    t2 = ImageTracker(rig, ImageFrontEndTuning(n_min=40, n_max=40))
+    t2.step(*_pair(rig, plane))
+    ok = t2.step(*_pair(rig, plane.moved([0, 0, 0], [0.01, 0.0, 0.0])))
+    assert ok.stats.fb_rejected == 0 and ok.stats.matched == 40
+
+
+def _sequence(rig, n, step=([0.0, 0.01, 0.004], [0.01, 0.0, 0.005]), plane=None):
+    plane = plane or _plane()
+    for _ in range(n):
+        yield _pair(rig, plane)
+        plane = plane.moved(*step)
+
+
+def test_feature_management_over_a_sequence():
+    rig = _rigs()["convergent"]
+    tu = ImageFrontEndTuning(n_min=50, n_max=50, max_age_frames=4)
+    tracker = ImageTracker(rig, tu)
+    seen: set[int] = set()
+    ages: dict[int, int] = {}
+    prev_ids = np.zeros(0, dtype=np.int64)
+    for left, right in _sequence(rig, 12):
+        fr = tracker.step(left, right)
+        assert len(fr.ids) == 50  # held at n_max
+        assert fr.stats.removed == 0
+        assert np.isfinite(fr.uv).all() and np.isfinite(fr.p_inC).all()
+        new = np.setdiff1d(fr.ids, prev_ids)
+        assert len(new) == fr.stats.new
+        assert not (set(new.tolist()) & seen)  # IDs never reused
+        if len(prev_ids) and len(new):
+            assert new.min() > max(seen)
+        old = np.isin(fr.ids, prev_ids)
+        # the 5 x 5 mask: no new feature inside an existing feature's square
+        if old.any() and (~old).any():
+            cheb = np.abs(np.floor(fr.uv[0, ~old])[:, None, :] - np.floor(fr.uv[0, old])[None]).max(
+                axis=2
+            )
+            assert cheb.min() >= 3
+        for i, a in zip(fr.ids.tolist(), fr.age.tolist(), strict=True):
+            assert a == ages.get(i, 0) + 1  # survival time counts observed frames
+            ages[i] = a
+        seen |= set(fr.ids.tolist())
+        prev_ids = fr.ids
+    assert max(ages.values()) == 4  # max age enforced, and reached
+    assert tracker.next_id == len(seen)
+
+
+def test_removal_takes_the_most_tracked():
+    ids = np.arange(6, dtype=np.int64)
+    age = np.array([3, 9, 1, 9, 4, 2], dtype=np.int64)
+    assert most_tracked_to_remove(ids, age, 3).tolist() == [1, 3, 4]  # ages 9, 9, 4
+    assert most_tracked_to_remove(ids, age, 5).tolist() == [1]  # tie at 9: the older ID
+    assert most_tracked_to_remove(ids, age, 6).size == 0
+    assert most_tracked_to_remove(ids, age, 10).size == 0
+
+
+@given(
+    st.lists(st.integers(1, 50), min_size=0, max_size=40),
+    st.integers(1, 40),
+)
+def test_removal_property(ages, n_max):
+    age = np.array(ages, dtype=np.int64)
+    ids = np.arange(len(age), dtype=np.int64)
+    drop = most_tracked_to_remove(ids, age, n_max)
+    assert drop.size == max(len(age) - n_max, 0)
+    keep = np.setdiff1d(ids, drop)
+    if drop.size and keep.size:
+        assert age[drop].min() >= age[keep].max()
+
+
+def test_black_frame_gives_zero_features_and_recovers():
+    rig = _rigs()["parallel"]
+    tracker = ImageTracker(rig, ImageFrontEndTuning(n_min=30, n_max=30))
+    black = np.zeros((H, W), np.uint8)
+    fr = tracker.step(black, black)  # black first frame
+    assert len(fr.ids) == 0 and fr.uv.shape == (2, 0, 2)
+    frames = list(_sequence(rig, 3))
+    assert len(tracker.step(*frames[0]).ids) == 30
+    fr = tracker.step(black, black)
+    assert len(fr.ids) == 0 and fr.stats.lost + fr.stats.fb_rejected == 30
+    fr = tracker.step(*frames[2])  # detection restarts
+    assert len(fr.ids) == 30 and np.isfinite(fr.uv).all()
+    assert fr.ids.min() == 30  # fresh IDs
+
+
+def test_few_features_are_fine():
+    rig = _rigs()["parallel"]
+    tracker = ImageTracker(rig, ImageFrontEndTuning(n_min=2, n_max=2))
+    for left, right in _sequence(rig, 3):
+        fr = tracker.step(left, right)
+        assert len(fr.ids) == 2 and np.isfinite(fr.uv).all()
+    # a single textured blob on black: at most a handful of features, never NaN
+    img = np.zeros((H, W), np.uint8)
+    cv2.rectangle(img, (150, 100), (170, 120), 200, -1)
+    tracker = ImageTracker(rig)
+    for _ in range(2):
+        fr = tracker.step(img, np.roll(img, -40, axis=1))
+        assert len(fr.ids) < 3 and np.isfinite(fr.uv).all()
+
+
+def test_bad_images_are_input_errors():
+    tracker = ImageTracker(_rigs()["parallel"])
+    ok = np.zeros((H, W), np.uint8)
+    with pytest.raises(InputError):
+        tracker.step(np.zeros((H, W, 3), np.uint8), ok)
+    with pytest.raises(InputError):
+        tracker.step(ok, np.zeros((H, W), np.float32))
+    with pytest.raises(InputError):
+        tracker.step(ok, np.zeros((H + 1, W), np.uint8))
+    with pytest.raises(ValueError):
+        ImageFrontEndTuning(n_min=10, n_max=5)
+    with pytest.raises(ValueError):
+        ImageFrontEndTuning(nonsense=1)
+
+
+# ----------------------------------------------------------------------------- track_images
+
+
+def test_track_images_gives_stereo_measurements():
+    rig = _rigs()["convergent"]
+    n = 6
+    t = 0.1 * np.arange(n)
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    calls: list[int] = []
+    black = np.zeros((H, W), np.uint8)
+    frames = list(_sequence(rig, n))
+    frames[3] = (black, black)
+    meas, stats = track_images(
+        iter(frames),
+        t,
+        rig,
+        q,
+        q,
+        0.5,
+        ImageFrontEndTuning(n_min=40, n_max=40, max_age_frames=3),
+        progress=calls.append,
+    )
+    assert isinstance(meas, StereoMeasurements)
+    N = meas.uv.shape[2]
+    assert meas.uv.shape == (n, 2, N, 2) and meas.observed.shape == (n, 2, N)
+    assert np.array_equal(meas.observed[:, 0], meas.observed[:, 1])  # both cameras or none
+    assert np.isfinite(meas.uv[meas.observed]).all()
+    assert np.isnan(meas.uv[~meas.observed]).all()
+    assert (meas.observed[:, 0].sum(axis=1) == stats.counts["features"]).all()
+    assert stats.counts["features"].tolist() == [40, 40, 40, 0, 40, 40]
+    assert stats.track_length.max() <= 3 and stats.track_length.sum() == 200
+    assert N == stats.totals["new"] and calls == list(range(n))
+    d = stats.to_dict()
+    assert d["feature_ids"] == N and d["epochs"] == n
+    # each feature keeps its slot: observed epochs of an ID are contiguous
+    obs = meas.observed[:, 0]
+    for j in range(N):
+        k = np.flatnonzero(obs[:, j])
+        assert k.size and np.all(np.diff(k) == 1)
+    ds = meas.to_dataset("test")  # round trip through the file format
+    back = StereoMeasurements.from_dataset(ds)
+    assert np.array_equal(back.observed, meas.observed)
+    with pytest.raises(InputError):
+        track_images(iter(frames[:5]), t, rig, q, q, 0.5)
+    with pytest.raises(InputError):
+        track_images(iter(frames), t[:5], rig, q[:5], q[:5], 0.5)
