@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+import yaml
 from rich.console import Console
 
 from tumblenav import cli, evaluation, io, pipeline
@@ -16,7 +17,7 @@ from tumblenav.campaign.runner import collect, summarise
 from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.estimators import base as est_base
 from tumblenav.evaluation.metrics import RunErrors
-from tumblenav.scenario import load_scenario, scenario_to_yaml
+from tumblenav.scenario import builtin_text, load_scenario, scenario_to_yaml
 from tumblenav.simulation import run_streams, simulate
 
 
@@ -96,11 +97,26 @@ def test_a_repeated_option_is_refused(tmp_path, capsys):
     assert code == 2 and "--seed" in err
 
 
-def test_chang2021_says_plainly_that_its_estimator_does_not_exist_yet(tmp_path, capsys):
-    code, _, err = run(["estimate", "chang2021", "-o", tmp_path / "e"], capsys)
-    assert code == 2 and "not implemented yet" in err and "--estimator" not in err
-    code, _, err = run(["reproduce", "chang2021", "-o", tmp_path / "r"], capsys)
-    assert code == 2 and "not implemented yet" in err
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"focal_length_px": 0.0}, "focal_length_px"),
+        ({"focal_length_px": -5.0}, "focal_length_px"),
+        ({"baseline_m": 0.0}, "baseline"),
+        ({"principal_point_px": [2000.0, 640.0]}, "outside the 1280 x 1280 px image"),
+    ],
+)
+def test_a_calibration_that_cannot_be_right_is_one_line_exit_2(tmp_path, capsys, change, words):
+    """Chang 2021 issue, bad input: fx <= 0, a zero baseline, a principal point outside the
+    image: one line naming the key, exit 2, nothing written."""
+    data = yaml.safe_load(builtin_text("chang2021"))
+    data["sensor"].update(change)
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data))
+    code, _, err = run(["estimate", p, "-o", tmp_path / "e"], capsys)
+    assert code == 2 and words in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "e").exists()
 
 
 # --- measurements checked against the scenario ------------------------------------------------

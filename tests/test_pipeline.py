@@ -225,8 +225,6 @@ def test_reproduce_hu2024_writes_cases_and_figures(tmp_path, capsys):
         assert (out / f"{name}.png").exists()
 
 
-def test_reproduce_unknown_or_unimplemented_paper(tmp_path, capsys):
+def test_reproduce_unknown_paper(tmp_path, capsys):
     code, _, err = cli(["reproduce", "nope", "-o", tmp_path], capsys)
     assert code == 2 and "unknown paper" in err
-    code, _, err = cli(["reproduce", "chang2021", "-o", tmp_path], capsys)
-    assert code == 2 and "not implemented yet" in err

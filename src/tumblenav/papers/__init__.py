@@ -44,7 +44,6 @@ def reproduce(
         from tumblenav.papers import kabir2025
 
         return kabir2025.reproduce(Path(output), runs=runs, workers=workers, console=console)
-    raise InputError(
-        f"reproduce {paper}: Chang 2021's estimator (ekf-pose) is not implemented yet, so its "
-        "results cannot be reproduced; available now: hu2024, yu2019, kabir2025"
-    )
+    from tumblenav.papers import chang2021
+
+    return chang2021.reproduce(Path(output), runs=runs, workers=workers, console=console)

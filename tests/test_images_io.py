@@ -1,0 +1,139 @@
+"""Stereo images as measurements: simulated lazily and deterministically, written as PNG pairs
+with measurements.nc, read back pixel for pixel, and bad image files refused with one line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tumblenav import io, sensors
+from tumblenav.campaign.store import run_seed
+from tumblenav.errors import InputError
+from tumblenav.measurements import STEREO_IMAGES, StereoImageMeasurements, kind_of
+from tumblenav.measurements.images import read_png
+from tumblenav.scenario import load_scenario
+from tumblenav.simulation import simulate
+
+
+@dataclass(frozen=True)
+class _Noise:
+    """A small synthetic source: seeded noise images."""
+
+    n: int
+    shape: tuple[int, int]
+
+    def __len__(self) -> int:
+        return self.n
+
+    def pair(self, k: int):
+        rng = np.random.default_rng([7, k])
+        return tuple(rng.integers(0, 256, self.shape, dtype=np.uint8) for _ in range(2))
+
+
+def _small(n: int = 3, w: int = 64, h: int = 48) -> StereoImageMeasurements:
+    rig = sensors.convergent_rig(50.0, 0.3, np.radians(5.0), (w, h))
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return StereoImageMeasurements(
+        t=np.arange(n) * 0.2, q_CL=q, q_LI=q, rig=rig, noise_px=0.5, source=_Noise(n, (h, w))
+    )
+
+
+def test_png_pairs_round_trip_pixel_for_pixel(tmp_path: Path):
+    m = _small()
+    m.write(tmp_path, "test")
+    assert sorted(p.name for p in (tmp_path / "images").iterdir())[:2] == [
+        "000000_left.png",
+        "000000_right.png",
+    ]
+    back = StereoImageMeasurements.from_dataset(
+        io.read_netcdf(tmp_path / "measurements.nc"), tmp_path
+    )
+    assert np.array_equal(back.t, m.t) and back.noise_px == 0.5
+    assert back.rig.kind == "convergent" and np.allclose(back.rig.right.R_CkC, m.rig.right.R_CkC)
+    for a, b in zip(back.pairs(), m.pairs(), strict=True):
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not list(tmp_path.rglob("*.tmp"))  # atomic writes leave nothing behind
+
+
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        ("missing", "image file not found"),
+        ("size", "calibration says 64 x 48 px"),
+        ("colour", "3-channel colour image"),
+        ("16bit", "not an 8-bit grayscale image"),
+        ("text", "cannot read the image"),
+    ],
+)
+def test_bad_image_files_are_one_line_naming_the_file(tmp_path: Path, bad, words):
+    _small().write(tmp_path)
+    f = tmp_path / "images" / "000001_right.png"
+    if bad == "missing":
+        f.unlink()
+    elif bad == "size":
+        cv2.imwrite(str(f), np.zeros((48, 60), np.uint8))
+    elif bad == "colour":
+        cv2.imwrite(str(f), np.zeros((48, 64, 3), np.uint8))
+    elif bad == "16bit":
+        cv2.imwrite(str(f), np.zeros((48, 64), np.uint16))
+    else:
+        f.write_text("not an image")
+    back = StereoImageMeasurements.from_dataset(
+        io.read_netcdf(tmp_path / "measurements.nc"), tmp_path
+    )
+    back.source.pair(0)  # the others are fine
+    with pytest.raises(InputError) as ei:
+        back.source.pair(1)
+    assert words in str(ei.value) and "000001_right.png" in str(ei.value)
+    assert "\n" not in str(ei.value)
+
+
+def test_read_png_accepts_8bit_grayscale(tmp_path: Path):
+    img = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    cv2.imwrite(str(tmp_path / "a.png"), img)
+    assert np.array_equal(read_png(tmp_path / "a.png", (3, 4)), img)
+
+
+@pytest.fixture(scope="module")
+def close_images():
+    sc = load_scenario("chang2021_close").with_updates(duration_s=0.6, steady_state_window_s=None)
+    return sc, simulate(sc, run_seed(sc.montecarlo.seed, 0))
+
+
+def test_simulated_images_are_lazy_deterministic_and_seeded(close_images):
+    sc, (truth, meas) = close_images
+    assert kind_of(sc.sensor) == STEREO_IMAGES and isinstance(meas, StereoImageMeasurements)
+    a, b = meas.source.pair(2), meas.source.pair(2)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])  # any order, same pixels
+    assert a[0].shape == (1024, 1024) and a[0].dtype == np.uint8
+    assert (a[0] > 30).mean() > 0.01  # the lit target is in the left view ...
+    assert (a[1] > 30).mean() > 0.01  # ... and in the right one
+    _, other = simulate(sc, run_seed(sc.montecarlo.seed, 1))
+    c = other.source.pair(2)
+    assert not np.array_equal(a[0], c[0])  # another run: other camera noise
+    assert np.abs(a[0].astype(int) - c[0].astype(int)).mean() < 3  # ... of the same scene
+
+
+def test_simulate_writes_png_pairs_that_read_back_identical(close_images, tmp_path: Path):
+    from tumblenav import pipeline
+
+    sc, (truth, meas) = close_images
+    pipeline.run_simulate(str(_yaml(sc, tmp_path)), tmp_path / "sim", plots=False)
+    ds = io.read_netcdf(tmp_path / "sim" / "measurements.nc")
+    assert ds.attrs["kind"] == "stereo-images"
+    back = StereoImageMeasurements.from_dataset(ds, tmp_path / "sim")
+    for a, b in zip(back.pairs(), meas.pairs(), strict=True):
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert (tmp_path / "sim" / "truth.nc").is_file()
+
+
+def _yaml(sc, folder: Path) -> Path:
+    from tumblenav.scenario import scenario_to_yaml
+
+    p = folder / "scenario.yaml"
+    p.write_text(scenario_to_yaml(sc))
+    return p
