@@ -51,10 +51,11 @@ ATTRIBUTES: dict[str, str] = {
     "layout": "error-state slice of each block, `name:start-stop`, for example "
     "`attitude:0-3; rate:3-6; ...`",
     "skipped": "measurements the estimator skipped and why, `reason=count; ...`",
+    "kind": "the measurement type (`stereo-images`)",
 }
 # Attributes whose value is the same in every file of its kind: shown in the tables.
 _FIXED_VALUES: tuple[str, ...] = ("title", "tumblenav_format", "quaternion_convention", "frames")
-_FIXED_VALUES += ("camera_model", "sensor")
+_FIXED_VALUES += ("camera_model", "sensor", "kind")
 
 # Sizes of the dimensions whose size depends on the run.
 _SIZES = {
@@ -109,6 +110,24 @@ def _history(layout: StateLayout, n: int = 2) -> EstimateHistory:
     )
 
 
+def _example_images():
+    """Two epochs of stereo image pairs (the rig of chang2021_close) without rendering."""
+    from tumblenav import sensors
+    from tumblenav.measurements import StereoImageMeasurements
+    from tumblenav.scenario import load_scenario
+
+    rig = sensors.make_rig(load_scenario("chang2021_close").sensor)
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (2, 1))
+    return StereoImageMeasurements(
+        t=np.array([0.0, 0.2]),
+        q_CL=q,
+        q_LI=q,
+        rig=rig,
+        noise_px=0.5,
+        source=None,  # type: ignore[arg-type]
+    )
+
+
 def example_files() -> dict[str, xr.Dataset]:
     """truth.nc, both measurements.nc and estimates.nc of every estimator, as written."""
     from tumblenav.measurements import StereoImageMeasurements
@@ -123,6 +142,9 @@ def example_files() -> dict[str, xr.Dataset]:
         if label == "stereo":
             out["truth.nc"] = _written(truth.to_dataset(s.name))
         out[f"measurements.nc ({label})"] = _written(meas.to_dataset(s.name))
+    out["measurements.nc (stereo images)"] = _written(
+        _example_images().to_dataset("example", *StereoImageMeasurements.file_names(2))
+    )
     for est, layout in estimator_layouts(_EXAMPLE_FEATURES).items():
         hist = _history(layout)
         out[f"estimates.nc {est}"] = _written(io.estimates_dataset(hist, "example", est, hist.x))
@@ -271,7 +293,13 @@ def tuning_sections() -> dict[str, str]:
         k for k in hu.model_fields if _default(hu.model_fields[k]) != _default(base.model_fields[k])
     ]
     kabir, gp = ukf.KabirTuning, ukf_gp.UKFGPTuning
+    from tumblenav.frontends.stereo_images import ImageFrontEndTuning
+    from tumblenav.scenario import ImageNoiseConfig, ImagesConfig
+
     return {
+        "sensor.images": tuning_table(ImagesConfig),
+        "sensor.images.noise": tuning_table(ImageNoiseConfig),
+        "tuning: image front end": tuning_table(ImageFrontEndTuning),
         "tuning: ekf-dpacf": tuning_table(hu),
         "tuning: stereo-points front end": tuning_table(StereoPointsTuning),
         "tuning: projections front end": tuning_table(ProjectionsTuning),
