@@ -280,11 +280,7 @@ _REGISTRY: dict[str, Callable[[], Estimator]] = {}
 
 # Estimators a built-in scenario names that do not exist yet: a plain word for the user instead
 # of "unknown estimator".
-PLANNED = {
-    "ekf-pose": "Chang 2021's estimator (ekf-pose: image features, q-method and EKF) is not "
-    "implemented yet; this scenario can be simulated (tumblenav simulate), and estimators that "
-    "run on stereo tracks can be tried with -e (see tumblenav estimators)",
-}
+PLANNED: dict[str, str] = {}
 
 
 def register(name: str) -> Callable[[Callable[[], Estimator]], Callable[[], Estimator]]:
@@ -306,7 +302,7 @@ def _load_builtin() -> None:
     value: ``module:factory``, a callable returning the estimator). A plugin that fails to
     import is left out and its error kept in :data:`PLUGIN_ERRORS` (``tumblenav estimators``
     shows it); a plugin never replaces a built-in estimator."""
-    from tumblenav.estimators import hu2024, kabir2025, yu2019  # noqa: F401
+    from tumblenav.estimators import chang2021, hu2024, kabir2025, yu2019  # noqa: F401
 
     if _PLUGINS or PLUGIN_ERRORS:
         return

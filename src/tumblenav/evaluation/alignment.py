@@ -178,3 +178,40 @@ def yu_truth_state(truth: Any, history: EstimateHistory) -> Array:
     x[:, lay.nom("velocity")] = truth.v_L
     x[:, lay.nom("offset")] = truth.mass_centre_offset_T @ G.T
     return x
+
+
+# --- Chang 2021 ----------------------------------------------------------------------------
+
+
+@register_alignment("chang2021")
+def chang_truth_state(truth: Any, history: EstimateHistory) -> Array:
+    """The truth in ekf-pose's frame That, defined at epoch ``k0 = info["frame_epoch"]`` by
+    ``R_ThatL(k0) = info["R_ThatL_k0"]`` (the identity): ``R_ThatT = R_ThatL(k0) R_LT(k0)``
+    (constant, body-fixed), attitude ``q_ThatL(t) = R_ThatT R_TL(t)``, rate relative to L
+    ``omega_ThatL_That = R_ThatT (omega_TI_T - R_TL omega_LI_L)``, the mass centre's ``r_L``,
+    ``v_L``, and the offset ``b = R_ThatL(k0) (r_L(k0) - info["map_origin_L_k0"])`` (the mass
+    centre about the estimator's feature map origin). NaN before the estimator has a frame."""
+    from tumblenav.frames import lvlh_rate
+
+    lay = history.layout
+    n = len(truth.t)
+    x = np.full((n, lay.nominal_dim), np.nan)
+    k0 = history.info.get("frame_epoch")
+    if k0 is None:
+        return x
+    R_ThatL0 = np.asarray(history.info["R_ThatL_k0"], dtype=float)
+    R_LT = truth.R_LT
+    R_ThatT = R_ThatL0 @ R_LT[k0]
+    R_TL = np.swapaxes(R_LT, -1, -2)
+    if np.any(np.linalg.norm(truth.chaser_r_I, axis=-1) > 0):
+        w_LI_L = lvlh_rate(truth.chaser_r_I, truth.chaser_v_I)
+    else:  # no orbit: L = I
+        w_LI_L = np.zeros((n, 3))
+    w_TL_T = truth.omega_TI_T - np.einsum("tij,tj->ti", R_TL, w_LI_L)
+    x[:, lay.nom("attitude")] = rot.matrix_to_quat(R_ThatT @ R_TL)
+    x[:, lay.nom("rate")] = w_TL_T @ R_ThatT.T
+    x[:, lay.nom("position")] = truth.r_L
+    x[:, lay.nom("velocity")] = truth.v_L
+    origin = np.asarray(history.info["map_origin_L_k0"], dtype=float)
+    x[:, lay.nom("offset")] = R_ThatL0 @ (truth.r_L[k0] - origin)
+    return x

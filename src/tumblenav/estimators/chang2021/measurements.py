@@ -1,0 +1,256 @@
+"""Chang 2021 Sec. 2.2-2.3: feature positions and velocities from stereo tracks, the rate
+(eq. 29) and the centroid (eq. 30), with first-order covariances.
+
+Per epoch and feature observed by both cameras:
+
+* position in C by general two-ray triangulation
+  (:func:`tumblenav.frontends.triangulation.triangulate_two_ray`, any calibrated rig; Chang's
+  eq. 31 is its special case for the convergent rig), covariance from the Fisher information
+  of the four pixel coordinates, ``Sigma_C = sigma_px^2 (J^T J)^-1`` with ``J = d(u_l, v_l,
+  u_r, v_r)/dp`` of the exact projection (each camera in its own frame); rotated into L with
+  the rig attitude ``q_CL`` the chaser knows (``rho_L = R_LC rho_C``: the rig origin is the
+  chaser's reference point, as in :mod:`tumblenav.simulation`).
+* velocity by Chang 2021 eq. 26 from the pixel velocities of both cameras. The pixel
+  velocities are **differences of the track's pixels between consecutive epochs** (``(uv_k -
+  uv_{k-1}) / dt``, i.e. the optical-flow displacement a KLT front end measures) rather than
+  differences of triangulated positions: eq. 26 then weighs the four pixel rates by their own
+  (equal) noise and the solve stays linear. Each camera's two rows are written in that
+  camera's own frame (notes Sec. 1.6: the printed rows assume a parallel rig)::
+
+      [f, c_u - u_k, 0] R_CkC rho_dot_C = y_k u_dot_k,  [0, c_v - v_k, f] R_CkC rho_dot_C
+      = y_k v_dot_k      (from u y = f x + c_u y; y_k: depth in camera k; the printed
+                          left-hand side multiplies rho-bar, read rho-dot)
+
+  (the matrix is printed with the pixel column in the third place because Chang's depth is
+  ``z``; here the depth axis is ``y``), solved by least squares (divided by ``y_k``, the rows
+  have equal pixel-rate noise ``sqrt(2) sigma_px / dt``). The rig rotates w.r.t. L
+  (target pointing), so the velocity seen from L is ``R_LC rho_dot_C + (dR_LC/dt) rho_C``
+  with ``dR_LC/dt`` differenced from the known ``q_CL`` over the same interval.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav import rotations as rot
+from tumblenav.frontends.triangulation import triangulate_two_ray
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class FeatureTracks:
+    """Triangulated features of a whole run, in L.
+
+    p : (n, N, 3) m, NaN where not stereo-observed; P : (n, N, 3, 3) m^2 covariance of p;
+    v : (n, N, 3) m/s (eq. 26, from epochs k-1 and k), NaN where unavailable; V : (n, N, 3, 3)
+    (m/s)^2; ok_p, ok_v : (n, N) masks.
+    """
+
+    p: Array
+    P: Array
+    v: Array
+    V: Array
+    ok_p: BoolArray
+    ok_v: BoolArray
+
+
+def _rig_arrays(rig) -> tuple[Array, Array, Array, Array]:
+    cams = rig.cameras
+    f = np.array([c.focal_px for c in cams])
+    pp = np.array([c.principal_point_px for c in cams], dtype=float)
+    R = np.stack([c.R_CkC for c in cams])
+    o = np.stack([c.p_CkinC for c in cams])
+    return f, pp, R, o
+
+
+def projection_rows(p_C: Array, rig) -> tuple[Array, Array]:
+    """Rows ``d(u_k, v_k)/d p_C`` of both cameras (..., 4, 3) (px/m) and the depths ``y_k``
+    (..., 2) of ``p_C`` (..., 3) in each camera."""
+    f, _, R, o = _rig_arrays(rig)
+    rows, depth = [], []
+    for k in range(2):
+        pk = (p_C - o[k]) @ R[k].T
+        x, y, z = pk[..., 0], pk[..., 1], pk[..., 2]
+        du = np.stack([1.0 / y, -x / y**2, np.zeros_like(y)], -1) * f[k]
+        dv = np.stack([np.zeros_like(y), -z / y**2, 1.0 / y], -1) * f[k]
+        rows += [du @ R[k], dv @ R[k]]
+        depth.append(y)
+    return np.stack(rows, -2), np.stack(depth, -1)
+
+
+def eq26_rows(uv: Array, p_C: Array, rig) -> Array:
+    """Chang 2021 eq. 26's rows divided by each camera's depth (..., 4, 3), so that
+    ``A rho_dot_C = uv_dot`` (px/s): ``[f, c - u, 0] R_CkC / y_k`` etc. in camera k's frame."""
+    f, pp, R, o = _rig_arrays(rig)
+    rows = []
+    for k in range(2):
+        y = ((p_C - o[k]) @ R[k].T)[..., 1]
+        u, v = uv[..., k, 0], uv[..., k, 1]
+        zero = np.zeros_like(u)
+        ru = np.stack([np.full_like(u, f[k]), pp[k, 0] - u, zero], -1) @ R[k]
+        rv = np.stack([zero, pp[k, 1] - v, np.full_like(u, f[k])], -1) @ R[k]
+        rows += [ru / y[..., None], rv / y[..., None]]
+    return np.stack(rows, -2)
+
+
+def feature_tracks(meas) -> FeatureTracks:
+    """Positions, velocities and covariances of every stereo-observed feature of a run, in L
+    (module docstring). Vectorised over epochs and features; NaN never leaks into ``ok``."""
+    rig = meas.rig
+    uv = np.asarray(meas.uv, dtype=float)  # (n, 2, N, 2)
+    n, _, N, _ = uv.shape
+    obs = np.asarray(meas.observed, bool).all(axis=1) & np.all(np.isfinite(uv), axis=(1, 3))
+    f, pp, R, o = _rig_arrays(rig)
+    p_C = triangulate_two_ray(
+        uv[:, 0], uv[:, 1], f, pp, R[0], o[0], R[1], o[1]
+    )  # (n, N, 3) m, NaN where it fails
+    ok_p = obs & np.all(np.isfinite(p_C), axis=-1)
+    p_Cs = np.where(ok_p[..., None], p_C, np.array([0.0, 10.0, 0.0]))  # safe fill
+    J, _ = projection_rows(p_Cs, rig)  # (n, N, 4, 3)
+    s2 = float(meas.noise_px) ** 2
+    if not s2 > 0.0:  # noise-free tracks: a floor that keeps the covariances invertible
+        s2 = 1e-6
+    info = np.einsum("...ki,...kj->...ij", J, J)
+    with np.errstate(all="ignore"):
+        det = np.linalg.det(info)
+    ok_p &= np.isfinite(det) & (np.abs(det) > 0.0)
+    info = np.where(ok_p[..., None, None], info, np.eye(3))
+    P_C = s2 * np.linalg.inv(info)
+    R_LC = np.swapaxes(rot.quat_to_matrix(meas.q_CL), -1, -2)  # (n, 3, 3)
+    p_L = np.einsum("tij,tnj->tni", R_LC, p_Cs)
+    P_L = np.einsum("tij,tnjk,tlk->tnil", R_LC, P_C, R_LC)
+    p_L = np.where(ok_p[..., None], p_L, np.nan)
+
+    # eq. 26: pixel velocities by differencing consecutive epochs of the track
+    v_L = np.full((n, N, 3), np.nan)
+    V_L = np.tile(np.eye(3), (n, N, 1, 1))
+    ok_v = np.zeros((n, N), bool)
+    if n > 1:
+        dt = np.diff(meas.t)[:, None]  # (n-1, 1)
+        both = ok_p[1:] & ok_p[:-1]
+        uv_dot = (uv[1:] - uv[:-1]) / dt[:, :, None, None]  # (n-1, 2, N, 2)
+        uv_dot = np.moveaxis(uv_dot, 2, 1).reshape(n - 1, N, 4)  # (u_l, v_l, u_r, v_r)
+        uv1 = np.moveaxis(uv[1:], 2, 1)  # (n-1, N, 2, 2)
+        A = eq26_rows(np.where(both[..., None, None], uv1, 0.0), p_Cs[1:], rig)
+        AtA = np.einsum("...ki,...kj->...ij", A, A)
+        AtA = np.where(both[..., None, None], AtA, np.eye(3))
+        AtAi = np.linalg.inv(AtA)
+        rhs = np.einsum("...ki,...k->...i", A, np.where(both[..., None], uv_dot, 0.0))
+        v_C = np.einsum("...ij,...j->...i", AtAi, rhs)  # rho_dot_C, LS solution of eq. 26
+        dR = (R_LC[1:] - R_LC[:-1]) / dt[:, :, None]  # (n-1, 3, 3): dR_LC/dt
+        p_mid = 0.5 * (p_Cs[1:] + p_Cs[:-1])
+        v = np.einsum("tij,tnj->tni", R_LC[1:], v_C) + np.einsum("tij,tnj->tni", dR, p_mid)
+        V_C = (2.0 * s2 / dt[..., None, None] ** 2) * AtAi  # pixel rates: 2 sigma^2 / dt^2
+        V = np.einsum("tij,tnjk,tlk->tnil", R_LC[1:], V_C, R_LC[1:])
+        good = both & np.all(np.isfinite(v), axis=-1)
+        v_L[1:] = np.where(good[..., None], v, np.nan)
+        V_L[1:] = np.where(good[..., None, None], V, np.eye(3))
+        ok_v[1:] = good
+    return FeatureTracks(p=p_L, P=P_L, v=v_L, V=V_L, ok_p=ok_p, ok_v=ok_v)
+
+
+def rate_eq29(d_rho: Array, d_rho_dot: Array, V: Array) -> tuple[Array, Array] | None:
+    """Chang 2021 eq. 29: least-squares ``omega`` (in L) from the rigid-body relation
+    ``d_rho_dot_i = omega x d_rho_i`` on difference vectors (M, 3) with velocity-noise
+    covariances ``V`` (M, 3, 3); returns ``(omega_L, covariance)`` (sandwich of the
+    ``1/tr(V_i)``-weighted solve), or None when the difference vectors do not fix ``omega``
+    (fewer than two, or all parallel)."""
+    if len(d_rho) < 2:
+        return None
+    Mi = -rot.skew(d_rho)  # d_rho_dot = -[d_rho x] omega  (eq. 29: M = [d_rho x], rhs -d_rho_dot)
+    w = 3.0 / np.trace(V, axis1=-2, axis2=-1)
+    H = np.einsum("m,mki,mkj->ij", w, Mi, Mi)
+    ev = np.linalg.eigvalsh(H)
+    if not ev[0] > 1e-9 * ev[-1]:
+        return None
+    Hi = np.linalg.inv(H)
+    omega = Hi @ np.einsum("m,mki,mk->i", w, Mi, d_rho_dot)
+    S = np.einsum("m,mki,mkl,mlj->ij", w**2, Mi, V, Mi)
+    C = Hi @ S @ Hi
+    return omega, 0.5 * (C + C.T)
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    """A q-method pose measurement of one epoch (Chang 2021 eq. 27-28 and 30).
+
+    q_ThatL : attitude (4,); P_att : its covariance (3, 3) rad^2 (left error in That);
+    rho_bar : weighted centroid of the used features in L (m); s_bar : the same weighted
+    centroid of their registered positions in That (m); C_rho_bar, C_s_bar : their covariances;
+    used : (M,) mask over the input features (outliers dropped); outliers : how many.
+    """
+
+    q_ThatL: Array
+    P_att: Array
+    rho_bar: Array
+    s_bar: Array
+    C_rho_bar: Array
+    C_s_bar: Array
+    used: BoolArray
+    outliers: int
+
+
+def _fix(rho, Sr, s, Ss, reference):
+    from tumblenav.estimators.chang2021.qmethod import q_method, q_method_covariance
+
+    w = 3.0 / (np.trace(Sr, axis1=-2, axis2=-1) + np.trace(Ss, axis1=-2, axis2=-1))
+    if reference == "feature":  # Chang 2021 eq. 27: difference vectors from one feature
+        j = int(np.argmax(w))
+        rho_ref, s_ref = rho[j], s[j]
+    else:  # a virtual reference feature: the weighted centroid
+        rho_ref, s_ref = w @ rho / w.sum(), w @ s / w.sum()
+    a, b = s - s_ref, rho - rho_ref  # in That and in L
+    q, _ = q_method(a, b, w)  # q_ThatL: a ~ R_ThatL b
+    R = rot.quat_to_matrix(q)
+    N = Ss + R @ Sr @ R.T  # covariance of each residual a_i - R b_i (in That)
+    P, H = q_method_covariance(q, b, w, N)
+    ev = np.linalg.eigvalsh(H)
+    return q, R, P, ev, w, a - b @ R.T, N
+
+
+def pose_fix(
+    rho: Array,
+    S_rho: Array,
+    s: Array,
+    S_s: Array,
+    reference: str = "centroid",
+    gate_probability: float = 0.9999,
+    min_features: int = 3,
+) -> PoseFix | None:
+    """Attitude ``q_ThatL`` of the feature set ``rho`` (M, 3) in L (covariances ``S_rho``)
+    against the registered positions ``s`` (M, 3) in That (``S_s``), by Davenport's q-method
+    on difference vectors (Chang 2021 eq. 27-28) with scalar weights ``3 / tr(S_rho_i +
+    S_s_i)``; features whose residual fails the chi-square gate (3 dof) are dropped and the fit
+    redone once. None when fewer than ``min_features`` remain or the vectors do not fix the
+    rotation (collinear: the information matrix has a near-zero eigenvalue)."""
+    M = len(rho)
+    if M < min_features:
+        return None
+    from scipy.stats import chi2
+
+    used = np.ones(M, bool)
+    gate = chi2.ppf(gate_probability, 3)
+    # outliers one at a time, the worst first (one bad match skews the first fit, so that a
+    # single pass would throw out good features with it), at most a quarter of the set
+    while True:  # ends: each pass drops one feature, and at most M // 4 are dropped
+        q, R, P, ev, w, res, N = _fix(rho[used], S_rho[used], s[used], S_s[used], reference)
+        if not (np.isfinite(ev).all() and ev[0] > 1e-6 * ev[-1] and np.isfinite(P).all()):
+            return None
+        d2 = np.einsum("mi,mij,mj->m", res, np.linalg.inv(N), res)
+        worst = int(np.argmax(d2))
+        if d2[worst] <= gate:
+            break
+        if M - used.sum() >= M // 4 or used.sum() <= min_features:
+            return None  # too many outliers to trust the rest
+        used[np.flatnonzero(used)[worst]] = False
+    W = w / w.sum()
+    rho_bar = W @ rho[used]
+    s_bar = W @ s[used]
+    C_rho = np.einsum("m,mij->ij", W**2, S_rho[used])
+    C_s = np.einsum("m,mij->ij", W**2, S_s[used])
+    return PoseFix(q, P, rho_bar, s_bar, C_rho, C_s, used, int(M - used.sum()))

@@ -1,0 +1,126 @@
+"""Davenport's q-method (Chang 2021 eq. 27-28) in tumblenav's convention, and its covariance.
+
+Wahba's problem as used here: find the rotation ``R_AB`` that minimises
+
+.. math:: \\sum_i w_i \\lVert a_i - R_{AB} b_i \\rVert^2
+
+for vectors ``b_i`` given in B and ``a_i`` in A (``scipy.spatial.transform.Rotation.
+align_vectors(a, b, weights)`` solves the same problem and is the test oracle).
+
+Convention trap (Chang 2021 eq. 27, notes Sec. 0.7): the paper's Davenport matrix is written
+for the scalar-last **JPL/Shuster** quaternion, whose attitude matrix ``A(q)`` is the transpose
+of the Hamilton matrix of the same four numbers. For tumblenav's Hamilton ``q_AB`` (``R_AB =
+quat_to_matrix(q_AB)``) the profile matrix is ``B = sum_i w_i a_i b_i^T`` and
+
+.. math::
+
+    K = \\begin{bmatrix} B + B^T - \\operatorname{tr}(B) I_3 & z \\\\ z^T & \\operatorname{tr}(B)
+    \\end{bmatrix}, \\qquad z = [B_{32} - B_{23},\\; B_{13} - B_{31},\\; B_{21} - B_{12}]^T
+
+(eq. 27 with ``z`` of the opposite sign: Shuster's ``z`` belongs to ``B^T``), so that
+``q^T K q = tr(R(q)^T B)``; the optimal ``q_AB`` is the eigenvector of the largest eigenvalue
+(eq. 28), found with ``numpy.linalg.eigh`` on the symmetric 4x4 ``K``.
+
+Covariance (first order, for the left error ``R_AB = Exp(dtheta) R_hat_AB``, ``dtheta`` in A):
+with ``c_i = R_hat b_i`` and residual noise ``n_i = a_i - R b_i`` of covariance ``N_i``, the
+normal equations of the weighted least squares give ``dtheta = -H^-1 sum_i w_i [c_i x]^T n_i``
+with ``H = sum_i w_i [c_i x]^T [c_i x]``, hence the sandwich
+
+.. math:: P_\\theta = H^{-1} \\Big(\\sum_i w_i^2 [c_i\\times]^T N_i [c_i\\times]\\Big) H^{-1},
+
+which with ``w_i = 1/sigma_i^2`` and isotropic ``N_i = sigma_i^2 I`` is the Fisher bound
+``(sum_i (|c_i|^2 I - c_i c_i^T)/sigma_i^2)^-1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tumblenav import rotations as rot
+
+Array = NDArray[np.float64]
+
+__all__ = ["QMethodResult", "davenport_matrix", "q_method", "q_method_covariance"]
+
+
+def davenport_matrix(a: ArrayLike, b: ArrayLike, w: ArrayLike | None = None) -> Array:
+    """Davenport's ``K`` (..., 4, 4) for the Hamilton ``q_AB`` (module docstring; Chang 2021
+    eq. 27 with the sign of ``z`` for the Hamilton product).
+
+    Parameters
+    ----------
+    a, b : (..., N, 3)
+        Vectors in A and in B (any length; the weights multiply their products).
+    w : (..., N), optional
+        Non-negative weights (Chang's ``sigma_i``; default 1).
+    """
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    ww = np.ones(a.shape[:-1]) if w is None else np.asarray(w, dtype=float)
+    B = np.einsum("...n,...ni,...nj->...ij", ww, a, b)  # Chang 2021 eq. 27: B = sum w a b^T
+    tr = np.trace(B, axis1=-2, axis2=-1)
+    z = np.stack(
+        [B[..., 2, 1] - B[..., 1, 2], B[..., 0, 2] - B[..., 2, 0], B[..., 1, 0] - B[..., 0, 1]],
+        axis=-1,
+    )
+    K = np.zeros(B.shape[:-2] + (4, 4))
+    K[..., :3, :3] = B + np.swapaxes(B, -1, -2) - tr[..., None, None] * np.eye(3)
+    K[..., :3, 3] = z
+    K[..., 3, :3] = z
+    K[..., 3, 3] = tr
+    return K
+
+
+def q_method(a: ArrayLike, b: ArrayLike, w: ArrayLike | None = None) -> tuple[Array, Array]:
+    """The optimal ``q_AB`` (..., 4) (scalar part >= 0) and the eigenvalues of ``K`` (..., 4),
+    ascending (``lambda_max`` last; ``lambda_max - lambda_3`` small means a nearly
+    undetermined rotation, e.g. collinear vectors). Chang 2021 eq. 28."""
+    K = davenport_matrix(a, b, w)
+    lam, V = np.linalg.eigh(K)
+    q = rot.quat_normalize(V[..., :, 3])
+    return q, lam
+
+
+@dataclass(frozen=True)
+class QMethodResult:
+    """A q-method attitude fix: ``q_AB``, its covariance ``P`` (3x3, rad^2, left error in A),
+    the information matrix ``H`` of the fit and the weighted residual sum (``loss``)."""
+
+    q_AB: Array
+    P: Array
+    H: Array
+    loss: float
+
+
+def q_method_covariance(
+    q_AB: ArrayLike, b: ArrayLike, w: ArrayLike, N: ArrayLike
+) -> tuple[Array, Array]:
+    """First-order covariance (3, 3) of the q-method attitude (sandwich, module docstring) and
+    the information ``H``.
+
+    Parameters
+    ----------
+    q_AB : (4,)
+        The estimate.
+    b : (M, 3)
+        The vectors in B.
+    w : (M,)
+        The weights used in the fit.
+    N : (M, 3, 3)
+        Covariance of each residual ``a_i - R_AB b_i`` (in A; m^2 for positions).
+    """
+    c = np.asarray(b, dtype=float) @ rot.quat_to_matrix(q_AB).T  # c_i = R b_i
+    w = np.asarray(w, dtype=float)
+    S = rot.skew(c)  # (M, 3, 3) [c_i x]
+    St = np.swapaxes(S, -1, -2)
+    H = np.einsum("m,mij,mjk->ik", w, St, S)
+    M = np.einsum("m,mij,mjk,mkl->il", w**2, St, np.asarray(N, dtype=float), S)
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:  # the vectors do not fix the rotation (all collinear)
+        return np.full((3, 3), np.inf), H
+    P = Hi @ M @ Hi
+    return 0.5 * (P + P.T), H

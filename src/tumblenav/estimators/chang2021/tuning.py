@@ -1,0 +1,133 @@
+"""``estimator.tuning`` of ekf-pose (:class:`PoseTuning`). Chang 2021 gives none of these values
+(notes Sec. 1.9): every default is tumblenav's and says why."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+Array = NDArray[np.float64]
+
+
+class PoseTuning(BaseModel):
+    """Settings of ``ekf-pose`` (Chang 2021 Sec. 2 and 4.1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    init_frames: int = Field(
+        100,
+        ge=3,
+        description="frames of the start window (Chang 2021 Sec. 4.1: 'the first 100 frames "
+        "initialise the filter'); the filter starts at the window's last frame",
+    )
+    min_features: int = Field(
+        3, ge=3, description="fewest matched features for a pose measurement (q-method: 3)"
+    )
+    inertia: Literal["sphere", "given"] = Field(
+        "sphere",
+        description="target inertia in the dynamics (eq. 3): 'sphere' (unknown: torque-free "
+        "with omega_TI constant in the body; the Euler-torque mismatch goes into the rate "
+        "process noise, see inertia_asymmetry) or 'given' (inertia_kg_m2, a prior expressed in "
+        "the estimator's frame That: meaningful only when That is the principal frame, i.e. "
+        "with the paper's truth-based start)",
+    )
+    inertia_kg_m2: list[float] | list[list[float]] = Field(
+        [1.0, 1.0, 1.0],
+        description="with inertia 'given': principal moments [I1, I2, I3] or the 3x3 tensor "
+        "in That (kg m^2; only ratios matter)",
+    )
+    inertia_asymmetry: float = Field(
+        0.3,
+        ge=0,
+        description="with inertia 'sphere': RMS over the axes of |I_j - I_k| / I_i of the "
+        "unknown target (<= 1 for any body; 0.3: moments that differ by tens of percent). "
+        "The unmodelled Euler term has per-axis RMS ~ k |omega|^2 / 3 and correlation time "
+        "~ 1/|omega|, so the rate random walk gets the spectral density "
+        "2 k^2 |omega_TI|^3 / 27 (rad^2/s^3), from the current rate estimate",
+    )
+    rate_noise_rad2_s3: float = Field(
+        1e-10,
+        ge=0,
+        description="rate random-walk spectral density added in any case (unmodelled "
+        "torques; with inertia 'given' the only rate process noise)",
+    )
+    accel_noise_m2_s3: float = Field(
+        1e-10,
+        ge=0,
+        description="white-acceleration spectral density of the CW model (m^2/s^3): the "
+        "neglected nonlinear and J2 relative accelerations at <100 m are < 1e-8 m/s^2",
+    )
+    use_rate_velocity: bool = Field(
+        True,
+        description="use the rate (eq. 29) and centroid velocity (eq. 30) measurements of eq. "
+        "32; their noise is differenced between epochs (MA(1)), which a Kalman filter treats "
+        "as white: false keeps only attitude and position (the dynamics give rate and "
+        "velocity)",
+    )
+    mass_centre: Literal["consider", "estimated"] = Field(
+        "consider",
+        description="the mass centre about the feature map (offset b): 'consider' keeps the "
+        "start's value (Chang's fixed registration, eq. 30) and carries its uncertainty as a "
+        "Schmidt state; 'estimated' updates it (beyond the paper)",
+    )
+    reference: Literal["centroid", "feature"] = Field(
+        "centroid",
+        description="origin of the q-method's difference vectors (eq. 27): 'feature' is "
+        "Chang's reference feature (its noise enters every difference vector); 'centroid' "
+        "the weighted centroid of the matched features (a virtual reference feature, the "
+        "noise of the reference averaged over all of them)",
+    )
+    register_frames: int = Field(
+        5,
+        ge=1,
+        description="a feature's position about the mass centre r_i (eq. 30) is the mean of "
+        "its first register_frames observations mapped with the current estimate",
+    )
+    prior_mass_centre_sigma_m: float = Field(
+        0.5,
+        gt=0,
+        description="start: 1-sigma prior of the mass centre about the centroid of the first "
+        "frame's features (m; the target's size scale): it regularises the directions the "
+        "start window's rotation does not observe (along the rotation axis)",
+    )
+    feature_gate_probability: float = Field(
+        0.9999,
+        gt=0,
+        lt=1,
+        description="chi-square (3 dof) gate on each feature's q-method residual: outlier "
+        "matches are dropped and counted as outlier_features",
+    )
+    gate_probability: float = Field(
+        0.9999,
+        gt=0,
+        lt=1,
+        description="chi-square (3 dof) NIS gate on each of the four measurements (attitude, "
+        "rate, position, velocity); rejections are counted as gated_out",
+    )
+    measurement_noise_scale: float = Field(
+        1.0,
+        gt=0,
+        description="multiplier on every first-order measurement covariance (1: as derived)",
+    )
+
+    @field_validator("inertia_kg_m2")
+    @classmethod
+    def _inertia(cls, v: list[float] | list[list[float]]) -> list[float] | list[list[float]]:
+        a = np.asarray(v, dtype=float)
+        I = np.diag(a) if a.shape == (3,) else a
+        if I.shape != (3, 3) or not np.allclose(I, I.T):
+            raise ValueError("three principal moments or a symmetric 3x3 tensor (kg m^2)")
+        if not np.linalg.eigvalsh(I)[0] > 0:
+            raise ValueError("must be positive definite")
+        return v
+
+    def inertia_matrix(self) -> Array:
+        """The dynamics' inertia (3, 3): identity for 'sphere'."""
+        if self.inertia == "sphere":
+            return np.eye(3)
+        a = np.asarray(self.inertia_kg_m2, dtype=float)
+        I = np.diag(a) if a.ndim == 1 else a
+        return I / np.trace(I) * 3.0

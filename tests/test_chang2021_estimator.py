@@ -1,0 +1,178 @@
+"""ekf-pose (Chang 2021 Sec. 2): Jacobians against finite differences (the eq. 23 factor),
+the measurement functions against the truth, the start, the frame alignment and robustness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tumblenav import rotations as rot
+from tumblenav.estimators.base import get
+from tumblenav.estimators.chang2021 import model as M
+from tumblenav.estimators.chang2021.measurements import feature_tracks, pose_fix, rate_eq29
+from tumblenav.estimators.context import context_from_scenario
+from tumblenav.evaluation.alignment import truth_state
+from tumblenav.scenario import load_scenario
+from tumblenav.simulation import simulate
+from tumblenav.testing import numerical_jacobian
+
+
+def _scenario(duration=40.0, **upd):
+    sc = load_scenario("chang2021_close")
+    if getattr(sc.sensor, "images", None) is not None:
+        sc = sc.with_updates(**{"sensor.images": None})
+    return sc.with_updates(duration_s=duration, steady_state_window_s=[0.0, duration], **upd)
+
+
+def _flow_jacobian(x, inertia, n, h=1e-4):
+    """d(dx_dot)/d(dx) by central differences of the flow over +-h, through boxplus/boxminus."""
+
+    def f(dt):
+        return numerical_jacobian(
+            lambda y: M.propagate_mean(y, dt, inertia, n),
+            x,
+            M.LAYOUT.boxplus,
+            M.LAYOUT.boxminus,
+            eps=1e-6,
+            dim=M.DIM,
+        )
+
+    return (f(h) - f(-h)) / (2 * h)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), sphere=st.booleans())
+def test_error_jacobian_matches_finite_differences(seed, sphere):
+    rng = np.random.default_rng(seed)
+    x = np.zeros(M.LAYOUT.nominal_dim)
+    x[M.X_ATT] = rot.quat_normalize(rng.normal(size=4))
+    x[M.X_RATE] = rng.normal(size=3) * 0.1
+    x[M.X_POS] = rng.normal(size=3) * 10
+    x[M.X_VEL] = rng.normal(size=3) * 0.01
+    x[M.X_OFF] = rng.normal(size=3) * 0.3
+    inertia = np.eye(3) if sphere else np.diag(rng.uniform(50, 150, 3))
+    n = 0.05  # a large orbit rate so that the eq. 23 block is well above round-off
+    F = M.error_jacobian(x, inertia, n)
+    Fn = _flow_jacobian(x, inertia, n)
+    assert np.allclose(F, Fn, atol=2e-6 * max(1.0, np.abs(F).max()))
+
+
+def test_eq23_printed_factor_is_twice_the_left_error_one():
+    """Chang 2021 eq. 23 as printed is 2x tumblenav's (left error) F_wq, i.e. -2x in the
+    paper's own eq. 9 error (da = -dtheta); the finite differences decide (module docstring)."""
+    rng = np.random.default_rng(7)
+    x = np.zeros(M.LAYOUT.nominal_dim)
+    x[M.X_ATT] = rot.quat_normalize(rng.normal(size=4))
+    x[M.X_RATE] = [0.04, -0.06, 0.05]
+    inertia = np.diag([120.0, 100.0, 80.0])
+    n = 0.05
+    Fn = _flow_jacobian(x, inertia, n)[M.E_RATE, M.E_ATT]
+    a = rot.quat_to_matrix(x[M.X_ATT]) @ M.omega_LI_L(n)
+    w = x[M.X_RATE]
+    wti = w + a
+    Ii = np.linalg.inv(inertia)
+    printed = 2 * Ii @ (-rot.skew(inertia @ wti) + rot.skew(wti) @ inertia) @ rot.skew(
+        a
+    ) - 2 * rot.skew(w) @ rot.skew(a)
+    assert np.allclose(Fn, 0.5 * printed, atol=1e-7)
+    assert not np.allclose(Fn, printed, atol=1e-5)
+
+
+def test_feature_positions_and_velocities_are_consistent_with_their_covariances():
+    sc = _scenario(20.0)
+    truth, meas = simulate(sc, 3)
+    tr = feature_tracks(meas)
+    e = (tr.p - truth.features_L)[tr.ok_p]
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(tr.P[tr.ok_p]), e)
+    assert 0.9 < nees.mean() / 3 < 1.1
+    dt = np.diff(truth.t)[0]
+    fl = truth.features_L
+    v_true = np.full_like(fl, np.nan)
+    v_true[1:] = (fl[1:] - fl[:-1]) / dt  # the interval eq. 26's differenced pixels span
+    e = (tr.v - v_true)[tr.ok_v]
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(tr.V[tr.ok_v]), e)
+    assert 0.9 < nees.mean() / 3 < 1.1
+    assert np.abs(e.mean(axis=0)).max() < 5 * e.std(axis=0).max() / np.sqrt(len(e))
+
+
+def test_eq29_recovers_a_rigid_rotation():
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(10, 3))
+    w = np.array([0.03, -0.05, 0.02])
+    omega, C = rate_eq29(d, np.cross(w, d), np.tile(np.eye(3) * 1e-6, (10, 1, 1)))
+    assert np.allclose(omega, w, atol=1e-12)
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 3.0])  # collinear: rotation about it unknown
+    assert rate_eq29(line, np.cross(w, line), np.tile(np.eye(3), (5, 1, 1))) is None
+
+
+def test_pose_fix_refuses_collinear_points_and_drops_an_outlier():
+    rng = np.random.default_rng(4)
+    s = rng.normal(size=(30, 3))
+    R = rot.exp_map(np.array([0.3, -0.2, 0.5]))  # R_ThatL
+    rho = (s @ R) + np.array([1.0, 9.0, 2.0])  # rho = c + R_LThat s
+    S = np.tile(np.eye(3) * 1e-6, (30, 1, 1))
+    rho_bad = rho.copy()
+    rho_bad[3] += [0.5, 0.0, 0.0]
+    fix = pose_fix(rho_bad, S, s, S)
+    assert fix is not None and fix.outliers == 1 and not fix.used[3]
+    assert np.allclose(rot.quat_to_matrix(fix.q_ThatL), R, atol=1e-6)
+    line = np.outer(np.linspace(-1, 1, 10), [1.0, 0.5, 0.2])
+    assert pose_fix(line, S[:10], line, S[:10]) is None
+    assert pose_fix(rho[:2], S[:2], s[:2], S[:2]) is None
+
+
+def test_alignment_defines_the_frame_at_its_epoch():
+    sc = _scenario(30.0, **{"estimator.tuning": {"init_frames": 20}})
+    truth, meas = simulate(sc, 1)
+    h = get("ekf-pose").run(context_from_scenario(sc), meas, np.random.default_rng(1))
+    assert h.info["convention"] == "chang2021"
+    k0 = h.info["frame_epoch"]
+    xt = truth_state(truth, h)
+    assert np.allclose(xt[k0, M.X_ATT], rot.IDENTITY, atol=1e-12)  # R_ThatL(k0) = I
+    assert np.allclose(xt[:, M.X_POS], truth.r_L)
+    # the start (truth-free) is within a few of its own sigmas in attitude and rate
+    k = h.info["start_epoch"]
+    dx = h.layout.boxminus(xt[k], h.x[k])
+    P = h.P[k]
+    for blk in ("attitude", "rate"):
+        s = h.layout.err(blk)
+        d2 = dx[s] @ np.linalg.solve(P[s, s], dx[s])
+        assert d2 < 40.0  # chi2(3) 0.99999 is 25.9; a loose bound on a single start
+
+
+@pytest.mark.parametrize("case", ["black", "two_features", "collinear", "all_lost"])
+def test_robust_to_missing_and_degenerate_frames(case):
+    sc = _scenario(30.0, **{"estimator.tuning": {"init_frames": 20}})
+    truth, meas = simulate(sc, 2)
+    uv, obs = meas.uv.copy(), meas.observed.copy()
+    bad = slice(60, 80)
+    if case == "black":
+        obs[bad] = False
+    elif case == "two_features":
+        keep = np.zeros(obs.shape[-1], bool)
+        keep[np.flatnonzero(obs[60].all(0))[:2]] = True
+        obs[bad] &= keep
+    elif case == "collinear":  # only the features on one line through the target
+        from tumblenav.sensors import project
+
+        f_C = truth.features_C
+        line = f_C[bad, :1] + np.linspace(0, 1, obs.shape[-1])[None, :, None] * (
+            f_C[bad, 1:2] - f_C[bad, :1]
+        )
+        uv_line, vis = project(meas.rig, line)
+        uv[bad] = uv_line
+        obs[bad] = vis
+    elif case == "all_lost":
+        obs[60:] = False
+    uv = np.where(obs[..., None], uv, np.nan)
+    from dataclasses import replace
+
+    m2 = replace(meas, uv=uv, observed=obs)
+    h = get("ekf-pose").run(context_from_scenario(sc), m2, np.random.default_rng(2))
+    started = np.flatnonzero(np.all(np.isfinite(h.x), axis=1))
+    assert len(started) and started[-1] == len(h.t) - 1  # estimates to the end, no NaN
+    assert np.all(np.isfinite(h.P[started]))
+    skipped = sum(h.skipped[r] for r in ("no_features", "too_few_features", "degenerate_geometry"))
+    assert skipped >= (20 if case != "all_lost" else 90)
