@@ -72,22 +72,29 @@ def _block(mask: NDArray[np.uint8], uv: Array, side_px: int) -> None:
 
 
 def take_spaced(
-    uv: Array, order: NDArray[np.intp], mask: NDArray[np.uint8], side_px: int
-) -> NDArray[np.intp]:
-    """Corners in ``order`` (best first) whose pixel is still free in ``mask``, each one taken
-    blocking its ``side_px`` square (so new corners are spaced like existing features).
-    ``mask`` is modified."""
+    uv: Array, mask: NDArray[np.uint8], side_px: int, limit: int, start: int = 0
+) -> tuple[NDArray[np.intp], int]:
+    """Up to ``limit`` corners of ``uv`` (sorted best first), from index ``start`` on, whose
+    pixel is still free in ``mask``; each one taken blocks its ``side_px`` square, so new
+    corners are spaced like existing features.  ``mask`` is modified.
+
+    Returns the indices taken and the index to resume from.
+    """
     taken: list[int] = []
-    ij = np.floor(uv).astype(np.intp)
     lo = side_px // 2
     hi = side_px - lo
     h, w = mask.shape
-    for k in order:
-        i, j = ij[k]
+    cols = np.floor(uv[:, 0]).astype(np.intp).tolist()
+    rows = np.floor(uv[:, 1]).astype(np.intp).tolist()
+    k = start
+    n = len(cols)
+    while k < n and len(taken) < limit:
+        i, j = cols[k], rows[k]
         if mask[j, i]:
-            taken.append(int(k))
+            taken.append(k)
             mask[max(j - lo, 0) : min(j + hi, h), max(i - lo, 0) : min(i + hi, w)] = 0
-    return np.array(taken, dtype=np.intp)
+        k += 1
+    return np.array(taken, dtype=np.intp), k
 
 
 class CornerDetector:

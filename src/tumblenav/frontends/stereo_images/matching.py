@@ -187,7 +187,9 @@ class StereoMatcher:
                 if far_away.any() and sc[far_away].max() > best - tu.ncc_unique_margin:
                     status[k] = MatchStatus.NOT_UNIQUE
                     continue
-            off = float(parabola_peak(sc[i - 1 : i], sc[i : i + 1], sc[i + 1 : i + 2])[0])
+            sm, s0, sp = float(sc[i - 1]), best, float(sc[i + 1])
+            den = sm - 2.0 * s0 + sp  # parabola through the peak and its neighbours
+            off = min(max(0.5 * (sm - sp) / den, -0.5), 0.5) if den < 0.0 else 0.0
             uv_r[k] = p0[k] + (i + off) * d_r[k]
 
         ok = np.flatnonzero(status == MatchStatus.OK)

@@ -250,19 +250,18 @@ class ImageTracker:
         st["detected"] = len(cand)
         if not len(cand):
             return
-        # the best corners, spaced by the same mask among themselves (Chang 2021 Sec. 2.4:
-        # sort by response, drop the weak ones)
-        cand = cand[take_spaced(cand, np.arange(len(cand)), mask, tu.mask_px)]
-        if not len(cand):
-            return
+        # the best corners, spaced by the same mask among themselves, matched in batches
+        # until the vacancy is filled (Chang 2021 Sec. 2.4: sort by response, drop the weak)
         got_l: list[Array] = []
         got_r: list[Array] = []
         got_s: list[Array] = []
         rejected = 0
         start = 0
         while vacancy > 0 and start < len(cand):
-            batch = cand[start : start + max(2 * vacancy, 16)]
-            start += len(batch)
+            idx, start = take_spaced(cand, mask, tu.mask_px, max(2 * vacancy, 16), start)
+            if not idx.size:
+                break
+            batch = cand[idx]
             res = self.matcher.match(left, right, batch)
             ok = np.flatnonzero(res.ok)[:vacancy]
             rejected += int((~res.ok).sum())
@@ -271,6 +270,8 @@ class ImageTracker:
             got_s.append(res.score[ok])
             vacancy -= ok.size
         st["epipolar_rejected"] = st.get("epipolar_rejected", 0) + rejected
+        if not got_l:
+            return
         uv_l = np.concatenate(got_l)
         uv_r = np.concatenate(got_r)
         p = self.geometry.triangulate(uv_l, uv_r)

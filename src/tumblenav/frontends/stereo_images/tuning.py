@@ -61,14 +61,15 @@ class ImageFrontEndTuning(BaseModel):
         "removed (Chang 2021 Sec. 2.4)",
     )
     max_age_frames: int = Field(
-        100,  # tumblenav default (Chang 2021 silent); see the description
+        60,  # tumblenav default (Chang 2021 silent); see the description
         ge=1,
         description="a feature is dropped once it has been tracked in more than this many "
         "frames (its survival time, counting the first; Chang 2021 Sec. 2.4 caps the age but "
-        "gives no number). 100 frames (10 s at 10 Hz, ~50 deg of Chang's tumble) rather than "
-        "the 30 of the notes: longer tracks give the estimators more epochs per registered "
-        "feature and fewer feature IDs, while LK drift stays below the match noise (measured "
-        "in benchmarks/image_frontend.py)",
+        "gives no number). 60 frames (6 s at 10 Hz, ~30 deg of Chang's tumble) rather than "
+        "the notes' 30: half the feature IDs and twice the track length for the estimators, "
+        "the fewest match outliers of 30/60/100, and an LK drift (~0.02 px per frame, from "
+        "the translational LK model on a rotating patch) of about 1 px at 60 frames, i.e. "
+        "under 6 mm on the target at 3-10 m (benchmarks/image_frontend.py)",
     )
 
     # --- pyramidal Lucas-Kanade, left image k-1 -> k (Chang 2021 Fig. 5) ---
