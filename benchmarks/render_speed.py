@@ -8,7 +8,7 @@ settings (noise on, truth maps on) at each range; the rate is one over the media
 ``render_pairs_s=<pairs/s at the first range>``.
 
     .venv/bin/python benchmarks/render_speed.py [--ranges 3 8] [--frames 20] [--threads 2]
-        [--supersample 1] [--no-truth] [--no-noise]
+        [--supersample 1] [--no-truth] [--no-noise] [--save-png docs/results/chang2021]
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -42,6 +43,20 @@ def poses(range_m: float, frames: int) -> list[tuple[np.ndarray, np.ndarray]]:
     ]
 
 
+def save_pair(out, range_m: float, folder: str) -> None:
+    """Left | right side by side (a 4-px grey bar between), and FAST corners (threshold 20)."""
+    import cv2
+
+    left, right = out.images
+    bar = np.full((left.shape[0], 4), 128, np.uint8)
+    path = Path(folder) / f"render_{range_m:g}m.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.hstack([left, bar, right]))
+    fast = cv2.FastFeatureDetector_create(20, True, cv2.FastFeatureDetector_TYPE_9_16)
+    n = [len(fast.detect(im)) for im in (left, right)]
+    print(f"saved {path}: FAST (threshold 20) corners left {n[0]}, right {n[1]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ranges", type=float, nargs="+", default=[3.0, 8.0])
@@ -51,6 +66,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--no-truth", action="store_true")
     ap.add_argument("--no-noise", action="store_true")
+    ap.add_argument("--save-png", metavar="DIR", help="save each range's first pair as a PNG")
     args = ap.parse_args()
 
     settings = RenderSettings(
@@ -81,6 +97,8 @@ def main() -> None:
             times.append(time.perf_counter() - t0)
             if out.mask is not None:
                 cover.append(float(np.mean(out.mask)))
+            if args.save_png and len(times) == 1:
+                save_pair(out, range_m, args.save_png)
         # the median pair: robust to other processes on a shared machine
         med, mean = float(np.median(times)), float(np.mean(times))
         rate = 1.0 / med

@@ -260,6 +260,31 @@ def test_face_materials_of_the_procedural_satellite():
         assert surface_textures(sat.mesh, "mesh").source == "procedural"
 
 
+def test_a_users_obj_with_its_own_texture_is_rendered_with_it(tmp_path):
+    """A 1 x 1 m plate at 3 m, facing the camera, with an image whose top half is white and
+    bottom half black, exported as OBJ + MTL + PNG and read back through load_mesh: the
+    plate's upper half renders bright, its lower half dark (UV v up = image up)."""
+    from tumblenav.target_model import load_mesh
+
+    verts = np.array([[-0.5, 0, 0.5], [0.5, 0, 0.5], [0.5, 0, -0.5], [-0.5, 0, -0.5]], float)
+    plate = trimesh.Trimesh(verts, [[0, 1, 2], [0, 2, 3]], process=False)
+    tex = np.zeros((64, 64, 3), np.uint8)
+    tex[:32] = 255  # top rows of the image
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])  # z = -0.5 (up) at v = 1
+    plate.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(tex))
+    plate.export(tmp_path / "plate.obj")
+    model = load_mesh(tmp_path / "plate.obj")
+    rig = parallel_rig(100.0, 0.3, (100, 100))
+    s = RenderSettings(texture="mesh", noise=None, ambient=1.0, exposure=1.0)
+    r = StereoRenderer(model, rig, s)
+    assert r.texture_source == "mesh"
+    img = r.render(np.eye(3), [0.0, 3.0, 0.0], [0, -1.0, 0], None).images[0]
+    upper = img[_pixel(rig, [0.0, 3.0, -0.3])]
+    lower = img[_pixel(rig, [0.0, 3.0, 0.3])]
+    assert upper > 240 and lower < 15
+    assert StereoRenderer(model, rig, NO_NOISE).texture_source == "procedural"
+
+
 def test_supersampling_softens_edges_but_keeps_the_silhouette_truth():
     rig = RIGS["parallel"]
     model = _white_model(_boxes(((0.5, 0.5, 0.5), (0.0, 0.0, 0.0))))
@@ -302,6 +327,11 @@ def test_same_seed_same_pixels_different_seed_different_noise_off_uses_no_rng():
     assert rng.bit_generator.state == state
     assert np.array_equal(q1.images, quiet.render(*pose, None).images)
     assert np.array_equal(q1.images, clean.images)
+    # a pickled renderer (sent to a worker process) renders the same pixels
+    import pickle
+
+    again = pickle.loads(pickle.dumps(noisy))
+    assert np.array_equal(again.render(*pose, np.random.default_rng(7)).images, a.images)
     # threads do not change the pixels
     seq = StereoRenderer(model, rig, RenderSettings(noise=ImageNoise(read_noise_e=40.0), threads=1))
     assert np.array_equal(seq.render(*pose, np.random.default_rng(7)).images, a.images)

@@ -402,6 +402,13 @@ class StereoRenderer:
             for k, c in enumerate(rig.cameras)
         )
 
+    def __getstate__(self) -> dict[str, Any]:
+        # the Embree scene cannot be pickled: rebuilt (or found in the cache) on unpickling
+        return {"model": self.model, "rig": self.rig, "settings": self.settings}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["model"], state["rig"], state["settings"])  # type: ignore[misc]
+
     @property
     def texture_source(self) -> str:
         """The texture actually used: 'procedural' or 'mesh'."""
