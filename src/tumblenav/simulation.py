@@ -14,6 +14,7 @@ noise levels are compared head to head).
 from __future__ import annotations
 
 import functools
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -465,6 +466,8 @@ def image_renderer(scenario: Scenario):
     im = cfg.images
     noise = None if im.noise is None else render.ImageNoise(**im.noise.model_dump())
     settings = render.RenderSettings(
+        # both cores for one run; campaign workers (one per core) set 1
+        threads=int(os.environ.get("TUMBLENAV_RENDER_THREADS", "2")),
         exposure=im.exposure,
         ambient=im.ambient,
         supersample=im.supersample,

@@ -169,6 +169,8 @@ def _worker_init() -> None:
     the parent stops them itself (:func:`_stop_pool`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # one worker per core already: a renderer's second thread would only contend
+    os.environ.setdefault("TUMBLENAV_RENDER_THREADS", "1")
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:

@@ -56,6 +56,7 @@ __all__ = [
     "StereoRig",
     "angular_noise_to_px",
     "chang2021_rig",
+    "chang2021_text_rig",
     "convergent_rig",
     "disparity",
     "measure",
@@ -276,6 +277,19 @@ def chang2021_rig() -> StereoRig:
         toe_in_rad=np.deg2rad(10.0),
         resolution_px=(1280, 1280),
         principal_point_px=(640.0, 640.0),
+    )
+
+
+def chang2021_text_rig() -> StereoRig:
+    """Chang 2021's rig as its text gives it: 1024 x 1024 px and a 35 deg field of view
+    (``f = 512 / tan 17.5 deg = 1623.86`` px, principal point at the image centre, 512 px),
+    baseline 0.92 m, 10 deg toe-in per camera; :func:`chang2021_rig` is Table 1's."""
+    return convergent_rig(
+        focal_px=512.0 / np.tan(np.deg2rad(17.5)),
+        baseline_m=0.92,
+        toe_in_rad=np.deg2rad(10.0),
+        resolution_px=(1024, 1024),
+        principal_point_px=(512.0, 512.0),
     )
 
 
