@@ -2,16 +2,17 @@
 them). Third-party front ends register through the ``tumblenav.frontends`` entry-point group
 (name: the front end's name; value: ``module:attribute``, a :class:`FrontEnd`).
 
-The built-in front ends are still called by their estimators (ekf-dpacf runs the stereo-points
-front end itself); this registry is the catalogue the architecture's next step (front ends as
-stages of their own) builds on.
+Most built-in front ends are called by their estimators (ekf-dpacf runs the stereo-points
+front end itself); the stereo-images front end is a stage of its own
+(:mod:`tumblenav.frontends.stages`): it turns image pairs into the stereo tracks every
+track-consuming estimator reads.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from tumblenav.measurements import DEPTH_CLOUDS, STEREO_TRACKS
+from tumblenav.measurements import DEPTH_CLOUDS, STEREO_IMAGES, STEREO_TRACKS
 
 ENTRY_POINT_GROUP = "tumblenav.frontends"
 
@@ -26,6 +27,15 @@ class FrontEnd:
 
 
 BUILTIN = (
+    FrontEnd(
+        "stereo-images",
+        STEREO_IMAGES,
+        "stereo feature tracks (the stereo sensor's measurement type), for any estimator that "
+        "runs on tracks",
+        "tumblenav.frontends.stereo_images",
+        "Chang 2021 Sec. 2.3-2.4: FAST, pyramidal LK with a forward-backward check, epipolar "
+        "NCC matching, feature management",
+    ),
     FrontEnd(
         "stereo-points",
         STEREO_TRACKS,
