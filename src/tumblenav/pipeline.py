@@ -23,7 +23,7 @@ from tumblenav.evaluation import metrics
 from tumblenav.measurements import DepthMeasurements, StereoImageMeasurements, StereoMeasurements
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, load_scenario
-from tumblenav.simulation import Truth, run_streams, simulate, simulate_truth
+from tumblenav.simulation import Truth, run_streams, simulate, simulate_truth, with_track_truth
 
 
 def run_simulate(
@@ -249,12 +249,15 @@ def run_estimate(
                 f"scenario {scenario.name}: {scenario.sensor.kind} measurements are "
                 f"not simulated yet, so {estimator} cannot run on it"
             )
+    images = meas if isinstance(meas, StereoImageMeasurements) else None
     meas, frontend_stats = _front_end_stage(scenario, est, meas, con)
     if getattr(est, "compiled", False) and not kernels_compiled():
         con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
     with con.status(f"{estimator} on {scenario.name} ({len(meas.t)} epochs)"):
         hist = est.run(context_from_scenario(scenario), meas, run_streams(ss)["estimator"])
     output = Path(output)
+    if truth is not None and images is not None and "features" in hist.layout.names():
+        truth = with_track_truth(truth, images, meas)  # the tracks' own points
     r = evaluation.evaluate_run(hist, truth) if truth is not None else None
     x_true = evaluation.truth_state(truth, hist) if truth is not None else None
     io.write_netcdf(

@@ -13,6 +13,7 @@ noise levels are compared head to head).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from dataclasses import dataclass
@@ -500,6 +501,41 @@ def simulate_images(
         noise_px=cfg.noise.sigma_px(cfg.focal_px),
         source=frames,
     )
+
+
+def with_track_truth(
+    truth: Truth, images: StereoImageMeasurements, tracks: StereoMeasurements
+) -> Truth:
+    """``truth`` with ``features_T`` replaced by the true points of the image front end's
+    tracks (feature axis = track ID), for judging estimators that estimate feature positions:
+    the renderer's hit point at the left pixel where each track was first seen (the surface
+    point under the corner, to the ~1/2 px of pixel-centre sampling: ~3 mm at 10 m), one truth
+    render per epoch where a track starts. Tracks never seen (and a source that is not the
+    renderer's) give NaN."""
+    N = tracks.uv.shape[2]
+    pts = np.full((N, 3), np.nan)
+    src = images.source
+    if not isinstance(src, RenderedFrames):
+        return dataclasses.replace(truth, features_T=pts, normals_T=np.full((N, 3), np.nan))
+    seen = tracks.observed[:, 0, :]
+    first = np.argmax(seen, axis=0)
+    has = seen.any(axis=0)
+    b = np.asarray(truth.mass_centre_offset_T, float)
+    for k in np.unique(first[has]):
+        ids = np.flatnonzero(has & (first == k))
+        sun = src.sun_C[k]
+        out = src.renderer.render(  # type: ignore[attr-defined]
+            src.R_CM[k], src.p_MinC[k], None if np.isnan(sun).any() else sun,
+            np.random.default_rng(0),  # the noise does not touch the truth maps
+            truth=True,
+        )
+        hit = np.asarray(out.hit_M[0])
+        h, w = hit.shape[:2]
+        u, v = tracks.uv[k, 0, ids, 0], tracks.uv[k, 0, ids, 1]
+        col = np.clip(np.floor(u).astype(int), 0, w - 1)
+        row = np.clip(np.floor(v).astype(int), 0, h - 1)
+        pts[ids] = hit[row, col] - b  # M is T shifted by b: p_T = p_M - b
+    return dataclasses.replace(truth, features_T=pts, normals_T=np.full((N, 3), np.nan))
 
 
 Measurements = StereoMeasurements | DepthMeasurements | StereoImageMeasurements

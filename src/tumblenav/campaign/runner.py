@@ -27,6 +27,7 @@ import traceback
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,7 @@ from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation import metrics
 from tumblenav.numba_cache import kernels_compiled
 from tumblenav.scenario import Scenario, scenario_to_yaml
-from tumblenav.simulation import run_streams, simulate
+from tumblenav.simulation import run_streams, simulate, with_track_truth
 
 BATCH_CHUNK = 16  # runs per run_batch call: as fast per run as 128 (cache-friendlier), and
 # an interrupt loses at most this many runs per worker (benchmarks/hu2024_campaign.py)
@@ -72,7 +73,10 @@ def evaluate_runs(
             ss = run_seed(base_seed, k)
             truth, meas = simulate(scenario, ss)
             # image pairs: found and tracked features (the image front end), else as they are
-            meas, _ = stages.prepare(meas, consumes, images.frontend if images else None)
+            tracks, _ = stages.prepare(meas, consumes, images.frontend if images else None)
+            if tracks is not meas:  # the tracks' own points, for estimators of features
+                truth = _TrackTruth(truth, meas, tracks)
+            meas = tracks
             sims.append((k, truth, meas, run_streams(ss)["estimator"]))
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded, not fatal
             out.append((k, None, _short(exc)))
@@ -95,9 +99,22 @@ def evaluate_runs(
     return out
 
 
+@dataclass(frozen=True)
+class _TrackTruth:
+    """The truth of a run on images, and what is needed to find its tracks' true points."""
+
+    truth: Any
+    images: Any
+    tracks: Any
+
+
 def _evaluated(hist, truth, scenario: Scenario) -> tuple[Any, dict[str, Any]]:
     """A run's errors and the scalars stored with them: skipped updates by reason, per-axis
     error moments over the steady-state window (``summary.json`` ``per_axis``)."""
+    if isinstance(truth, _TrackTruth):  # only estimators of features need the tracks' points
+        t = truth
+        need = "features" in hist.layout.names()
+        truth = with_track_truth(t.truth, t.images, t.tracks) if need else t.truth
     r = evaluation.evaluate_run(hist, truth)
     extras = {f"skipped_{n}": c for n, c in hist.skipped.items()}
     return r, {**extras, **metrics.axis_moments(r, scenario.window_s)}
