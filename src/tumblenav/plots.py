@@ -824,7 +824,7 @@ def plot_feature_counts(
 
 
 def plot_tracked_frame(
-    images: tuple[Array, Array],
+    images: tuple[NDArray[np.uint8], NDArray[np.uint8]],
     uv: Array,
     tails: Array | None,
     path: str | Path,

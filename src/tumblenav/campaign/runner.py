@@ -74,10 +74,10 @@ def evaluate_runs(
             truth, meas = simulate(scenario, ss)
             # image pairs: found and tracked features (the image front end), else as they are
             tracks, _ = stages.prepare(meas, consumes, images.frontend if images else None)
+            judge: Any = truth
             if tracks is not meas:  # the tracks' own points, for estimators of features
-                truth = _TrackTruth(truth, meas, tracks)
-            meas = tracks
-            sims.append((k, truth, meas, run_streams(ss)["estimator"]))
+                judge = _TrackTruth(truth, meas, tracks)
+            sims.append((k, judge, tracks, run_streams(ss)["estimator"]))
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded, not fatal
             out.append((k, None, _short(exc)))
     batch = getattr(est, "run_batch", None)

@@ -37,6 +37,7 @@ from tumblenav import io
 from tumblenav.campaign import runner
 from tumblenav.campaign.store import CampaignStore, run_seed
 from tumblenav.errors import InputError
+from tumblenav.measurements import StereoImageMeasurements
 from tumblenav.papers import case_from_campaign
 from tumblenav.scenario import Scenario, load_scenario
 
@@ -187,6 +188,8 @@ def front_end_figures(
 
     sc = case_scenario("close", "text", base)
     _, meas = simulate(sc, run_seed(sc.montecarlo.seed, 0))
+    if not isinstance(meas, StereoImageMeasurements):
+        raise InputError(f"scenario {sc.name} does not render images (sensor.images)")
     images = getattr(sc.sensor, "images", None)
     tracker = ImageTracker(meas.rig, image_frontend_tuning(images.frontend if images else None))
     k_frame = min(int(round(frame_s * sc.rate_hz)), len(meas.t) - 1)
