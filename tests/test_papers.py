@@ -236,3 +236,51 @@ def test_reproduce_yu2019_refuses_zero_runs_before_any_work(tmp_path):
     with pytest.raises(InputError, match="--runs"):
         yu2019.reproduce(tmp_path / "out", runs=0)
     assert not (tmp_path / "out").exists()
+
+
+def test_chang2021_table2_and_its_contradiction_are_recorded():
+    """Chang 2021 Table 2 (per axis) as printed, the RMSE it implies, and Sec. 4.2's maxima
+    that contradict it (a maximum below a standard deviation)."""
+    from tumblenav.papers import chang2021
+
+    t2 = chang2021.PAPER_TABLE2
+    assert t2["attitude_deg"]["std"] == [0.4482, 0.5480, 0.5298]
+    assert t2["position_m"]["std"] == [0.1146, 0.1157, 0.1161]
+    assert chang2021.PAPER_RMSE["position_m"] == pytest.approx(0.2003, abs=1e-3)
+    for key, maximum in chang2021.PAPER_SEC42_MAX.items():
+        if key != "attitude_deg":
+            assert max(t2[key]["std"]) > maximum  # the contradiction the summary notes
+    sc = chang2021.case_scenario("close", "table1")
+    assert sc.sensor.focal_px == 2029.8 and sc.sensor.resolution_px == [1280, 1280]
+    sc = chang2021.case_scenario("printed", "text")
+    assert sc.sensor.focal_px == pytest.approx(1623.86, abs=0.01) and sc.sensor.images
+
+
+def test_reproduce_chang2021_runs_its_cases_on_images(tmp_path):
+    """A short close-range case end to end: rendered images, the image front end, ekf-pose,
+    Table 2's per-axis statistics next to the paper's, the Figs. 14-19 analogues."""
+    from tumblenav.papers import chang2021
+
+    base = load_scenario("chang2021_close").with_updates(
+        duration_s=8.0,
+        steady_state_window_s=[6.0, 8.0],
+        **{"estimator.tuning": {"init_frames": 15}},
+    )
+    con = Console(file=io.StringIO())
+    s = chang2021.reproduce(
+        tmp_path, runs=1, workers=1, console=con, cases=(("close", "text"),), bases={"close": base}
+    )
+    (case,) = s["cases"]
+    assert case["runs"] + case["runs_failed"] == 1 and case["camera"] == "text"
+    assert case["paper_table2"] == chang2021.PAPER_TABLE2 and "contradict" in s["note"]
+    if case["runs"]:
+        assert set(case["per_axis"]) >= {"attitude_deg", "position_m"}
+        assert len(case["per_axis"]["position_m"]["std"]) == 3
+        assert set(case["targets_met"]) == set(chang2021.TARGETS_CLOSE_STD)
+    for fig in (
+        "fig14_15_features.png",
+        "fig18_feature_count.png",
+        "close_text/errors_per_axis.png",
+    ):
+        assert (tmp_path / fig).exists(), fig
+    assert "chang2021" in _render(s)

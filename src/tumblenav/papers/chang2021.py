@@ -106,6 +106,11 @@ def rmse_from_table(stats: dict[str, list[float]]) -> float:
 PAPER_RMSE = {k: rmse_from_table(v) for k, v in PAPER_TABLE2.items()}
 
 
+def _axis_rms(stats: dict[str, list[float]]) -> np.ndarray:
+    """Per-axis RMS error from a per-axis mean and standard deviation."""
+    return np.sqrt(np.asarray(stats["mean"]) ** 2 + np.asarray(stats["std"]) ** 2)
+
+
 def case_scenario(range_name: str, preset: str, base: Scenario | None = None) -> Scenario:
     """The scenario of one case: ``range_name`` in :data:`RANGES`, ``preset`` in :data:`PRESETS`
     (``base`` replaces the built-in, e.g. a shorter run for tests)."""
@@ -169,8 +174,10 @@ def run_case(
     }
     if range_name == "close":
         case["targets_std_per_axis"] = TARGETS_CLOSE_STD
+        # judged on each axis' RMS (its mean and spread together), stricter than the spread
+        # alone: a biased estimate with a small spread does not meet a target
         case["targets_met"] = {
-            k: bool(np.all(np.asarray(ours[k]["std"]) <= v)) if k in ours else None
+            k: bool(np.all(_axis_rms(ours[k]) <= v)) if k in ours else None
             for k, v in TARGETS_CLOSE_STD.items()
         }
     return case

@@ -43,6 +43,12 @@ _RESULT_KEYS = {
     "targets",
     "skipped",
     "max_attitude_jump_deg",
+    "per_axis",
+    "paper_table2",
+    "paper_sec41_mean",
+    "paper_sec42_max",
+    "targets_std_per_axis",
+    "targets_met",
 }
 _NAMES = {
     "attitude_deg": "attitude",
@@ -357,6 +363,44 @@ def _gp_table(summary: dict[str, Any]) -> list[Table]:
     return [t]
 
 
+def _g3(v: Any) -> str:
+    """A per-axis triple with 2 significant digits: ``0.15, 0.075, 0.059``."""
+    return "n/a" if not v else ", ".join(_g(x, 2) for x in v)
+
+
+def _chang2021_tables(summary: dict[str, Any]) -> list[Table]:
+    """Chang 2021 Table 2: per-axis standard deviation of the errors after convergence, ours
+    next to the paper's, and the issue's targets at close range, judged on each axis' RMS (mean
+    and spread together; the means are in summary.json, ``per_axis``)."""
+    t = _table(
+        "chang2021 Table 2: error per axis (x, y, z) after convergence",
+        str(summary.get("note", "")),
+    )
+    t.add_column("case, quantity", no_wrap=True)
+    t.add_column("std: ours", no_wrap=True)
+    t.add_column("std: paper", no_wrap=True)
+    t.add_column("target RMS", no_wrap=True)
+    for case in summary.get("cases") or []:
+        ours, paper = case.get("per_axis") or {}, case.get("paper_table2") or {}
+        targets, met = case.get("targets_std_per_axis") or {}, case.get("targets_met") or {}
+        for key in ("attitude_deg", "rate_deg_s", "position_m", "velocity_m_s"):
+            o, p = ours.get(key) or {}, paper.get(key) or {}
+            goal = Text("")
+            if key in targets:
+                ok = met.get(key)
+                goal = Text(
+                    f"{targets[key]:g} {'met' if ok else 'no'}", style="green" if ok else "bold red"
+                )
+            _add(
+                t,
+                f"{case.get('range')}/{case.get('camera')} {_NAMES.get(key, key)} {unit(key)}",
+                _g3(o.get("std")),
+                _g3(p.get("std")),
+                goal,
+            )
+    return [t]
+
+
 def print_comparison(summary: dict[str, Any], console: Console) -> None:
     """Print the ``reproduce`` summary of one paper as tables: ours next to the paper's.
 
@@ -370,6 +414,8 @@ def print_comparison(summary: dict[str, Any], console: Console) -> None:
         tables += _yu2019_tables(summary)
     elif paper == "kabir2025":
         tables += _gp_table(summary)
+    elif paper == "chang2021":
+        tables += _chang2021_tables(summary)
     if not tables:
         console.print(Text(f"{paper}: no cases to compare"))
     for t in tables:
