@@ -37,6 +37,11 @@ def _scenarios():
         duration_s=80.0, steady_state_window_s=[60.0, 80.0], **{"occlusion.loss_from_s": 50.0}
     )
     kab = K.with_paper_assumptions(kab)  # the recipe's truth-based start, as explicit settings
+    chang = load_scenario("chang2021_close").with_updates(
+        duration_s=12.0,
+        steady_state_window_s=[8.0, 12.0],
+        **{"sensor.images": None, "estimator.tuning": {"init_frames": 20}},
+    )
     return {
         "ekf-dpacf": hu,
         "ekf-baseline": hu,
@@ -44,6 +49,7 @@ def _scenarios():
         "ukf": kab,
         "ukf-mult": kab,
         "ukf-gp": kab,
+        "ekf-pose": chang,
     }
 
 

@@ -26,13 +26,13 @@ import numpy as np
 
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, register
-from tumblenav.estimators.chang2021.filter import PoseSteps
+from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
 from tumblenav.estimators.chang2021.model import LAYOUT
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.measurements import STEREO_TRACKS
 
-__all__ = ["LAYOUT", "PoseEKF", "PoseSteps", "PoseTuning"]
+__all__ = ["LAYOUT", "PoseEKF", "PoseMemo", "PoseSteps", "PoseTuning"]
 
 SKIP_REASONS = (
     "no_start_geometry",
@@ -77,7 +77,7 @@ class PoseEKF:
         r = fold(steps, meas.t)
         skipped = {k: 0 for k in SKIP_REASONS} | r.skipped
         info: dict[str, Any] = {"convention": "chang2021", "estimates_offset": True}
-        s = steps.started.get("start")
+        s = r.memo.start if r.memo is not None else None  # the fold's last PoseMemo
         if s is not None:
             info.update(
                 frame_epoch=int(s.k0),

@@ -84,9 +84,20 @@ def rate_process_noise(x: Array, tun: PoseTuning, n: float) -> float:
 
 
 @dataclass(frozen=True)
+class PoseMemo:
+    """What the filter carries besides the mean and covariance (immutable): the feature map
+    and the start it grew from (the frame epoch ``start.k0`` and the map origin
+    ``start.origin_L_k0`` define the estimator's frame and offset)."""
+
+    fmap: FeatureMap
+    start: Start
+
+
+@dataclass(frozen=True)
 class PoseSteps:
     """ekf-pose on one run's stereo tracks, folded by :func:`tumblenav.estimators.base.fold`.
-    The belief's ``memo`` is the feature map (:class:`FeatureMap`)."""
+    The belief's ``memo`` is a :class:`PoseMemo`; the fold's last memo tells the run where
+    the estimator's frame was defined (no mutable state on the steps)."""
 
     meas: Any
     tun: PoseTuning
@@ -106,10 +117,6 @@ class PoseSteps:
         """That's defining epoch: the first epoch whose features fix a rotation."""
         return first_usable_epoch(self.tracks, self.tun, len(self.meas.t) - 1)
 
-    @functools.cached_property
-    def started(self) -> dict[str, Start]:
-        return {}
-
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         """Chang 2021 Sec. 4.1: the first ``init_frames`` frames from k0 start the filter
         (:func:`tumblenav.estimators.chang2021.init.start`), at the window's last frame."""
@@ -121,8 +128,7 @@ class PoseSteps:
         s = start(self.tracks, self.meas.t, k0, k, self.tun, self.n_orbit)
         if s is None:
             return None, StepInfo(skipped={"initialising": 1})
-        self.started["start"] = s
-        return Belief(float(self.meas.t[k]), s.x, s.P, LAYOUT, s.fmap), StepInfo()
+        return Belief(float(self.meas.t[k]), s.x, s.P, LAYOUT, PoseMemo(s.fmap, s)), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t
@@ -217,7 +223,8 @@ class PoseSteps:
         are registered. The start epoch's measurements made the start."""
         if started:
             return belief, StepInfo()
-        x, P, fmap = belief.x, belief.P, belief.memo
+        x, P, memo = belief.x, belief.P, belief.memo
+        fmap = memo.fmap
         blocks, R, skipped, fix = self._measure(x, k, fmap)
         if fix is not None and fix.outliers:
             skipped["outlier_features"] = fix.outliers
@@ -253,7 +260,7 @@ class PoseSteps:
         ):
             return belief, StepInfo(diverged=True, skipped={"diverged": 1})
         fmap = self._register(x, P, k, fmap, fix)
-        return Belief(belief.t, x, P, LAYOUT, fmap), StepInfo(
+        return Belief(belief.t, x, P, LAYOUT, PoseMemo(fmap, memo.start)), StepInfo(
             nis=nis, dof=dof, rejected=rejected, skipped=skipped
         )
 
