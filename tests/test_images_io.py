@@ -171,3 +171,38 @@ def test_track_truth_points_lie_under_the_tracked_corners(close_images):
         R.p_CkinC,
     )
     assert np.median(np.linalg.norm(tri - p_C, axis=1)) < 0.01
+
+
+def test_estimate_reads_png_pairs_and_reports_the_front_end(tmp_path: Path, capsys):
+    """`estimate --measurements DIR` on a folder of PNG pairs: the image front end runs, the
+    summary says what it found; a pair whose image is missing is one line, exit 2."""
+    from tumblenav import cli, pipeline
+
+    sc = load_scenario("chang2021_close").with_updates(
+        duration_s=3.0, steady_state_window_s=[2.0, 3.0], **{"estimator.tuning": {"init_frames": 8}}
+    )
+    y = _yaml(sc, tmp_path)
+    pipeline.run_simulate(str(y), tmp_path / "sim", plots=False)
+
+    def run(out: str) -> tuple[int, str]:
+        argv = [
+            "estimate",
+            str(y),
+            "--measurements",
+            str(tmp_path / "sim"),
+            "-o",
+            str(tmp_path / out),
+        ]
+        with pytest.raises(SystemExit) as ei:
+            cli.main(argv + ["--no-plots"])
+        return int(ei.value.code or 0), capsys.readouterr().err
+
+    code, err = run("est")
+    assert code == 0, err
+    s = io.read_json(tmp_path / "est" / "summary.json")
+    assert s["frontend"]["features_mean"] > 50 and s["frontend"]["epochs"] == 16
+    assert s["measurements"].endswith("measurements.nc")
+    (tmp_path / "sim" / "images" / "000007_left.png").unlink()
+    code, err = run("est2")
+    assert code == 2 and "000007_left.png" in err and "not found" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "est2").exists()
