@@ -73,6 +73,7 @@ _EXAMPLE_FEATURES = 2
 def estimator_layouts(n_features: int) -> dict[str, StateLayout]:
     """The state layout of every registered estimator, with ``n_features`` features."""
     from tumblenav.estimators import ukf
+    from tumblenav.estimators.chang2021 import model as chang_model
     from tumblenav.estimators.hu2024 import model as hu_model
     from tumblenav.estimators.yu2019 import model as yu_model
 
@@ -81,6 +82,7 @@ def estimator_layouts(n_features: int) -> dict[str, StateLayout]:
         "ekf-dpacf": hu,
         "ekf-baseline": hu,
         "ekf-depth": yu_model.LAYOUT,
+        "ekf-pose": chang_model.LAYOUT,
         "ukf": kabir,
         "ukf-mult": kabir,
         "ukf-gp": kabir,
@@ -250,8 +252,9 @@ def estimators_table() -> str:
     for est in one:
         blocks = zip(one[est].blocks, two[est].blocks, strict=True)
         sizes = ", ".join(f"{b1.name} {size(b1.size, b2.size)}" for b1, b2 in blocks)
-        params = io.estimates_dataset(_history(one[est]), "", est)["inertia_param"].values
-        rows.append([f"`{est}`", sizes, size(one[est].dim, two[est].dim), _code(params)])
+        ds = io.estimates_dataset(_history(one[est]), "", est)
+        params = _code(ds["inertia_param"].values) if "inertia_param" in ds.coords else "(none)"
+        rows.append([f"`{est}`", sizes, size(one[est].dim, two[est].dim), params])
     return _table(("estimator", "blocks (error-state size)", "m", "inertia_param"), rows)
 
 
@@ -293,6 +296,7 @@ def tuning_sections() -> dict[str, str]:
         k for k in hu.model_fields if _default(hu.model_fields[k]) != _default(base.model_fields[k])
     ]
     kabir, gp = ukf.KabirTuning, ukf_gp.UKFGPTuning
+    from tumblenav.estimators.chang2021.tuning import PoseTuning
     from tumblenav.frontends.stereo_images import ImageFrontEndTuning
     from tumblenav.scenario import ImageNoiseConfig, ImagesConfig
 
@@ -306,6 +310,7 @@ def tuning_sections() -> dict[str, str]:
         "tuning: planes front end": tuning_table(PlanesTuning),
         "tuning: ekf-baseline": tuning_table(base, differ),
         "tuning: ekf-depth": tuning_table(yu_tuning.DepthTuning),
+        "tuning: ekf-pose": tuning_table(PoseTuning),
         "tuning: ukf": tuning_table(kabir),
         "tuning: ukf-gp": tuning_table(
             gp, [k for k in gp.model_fields if k not in kabir.model_fields]
