@@ -33,7 +33,7 @@ from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
@@ -349,13 +349,9 @@ TuningT = TypeVar("TuningT", bound=BaseModel)
 def parse_tuning(raw: dict[str, Any] | None, model: type[TuningT]) -> TuningT:
     """Validate ``scenario.estimator.tuning`` against an estimator's pydantic model; an
     InputError naming the key (``estimator.tuning.KEY: unknown key`` / the reason) otherwise."""
-    try:
-        return model.model_validate(raw or {})
-    except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        raise InputError(f"estimator.tuning.{loc}: {msg}") from None
+    from tumblenav.settings_rules import validate
+
+    return validate(model, raw, "estimator.tuning")
 
 
 def nest_front_end_keys(raw: Any, front_end: type[BaseModel], key: str = "frontend") -> Any:

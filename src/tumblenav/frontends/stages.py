@@ -9,9 +9,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from pydantic import ValidationError
-
-from tumblenav.errors import InputError
 from tumblenav.measurements import STEREO_IMAGES, StereoImageMeasurements
 
 
@@ -19,14 +16,9 @@ def image_frontend_tuning(raw: dict[str, Any] | None) -> Any:
     """The image front end's settings (``sensor.images.frontend``), validated; InputError
     naming the key otherwise."""
     from tumblenav.frontends.stereo_images import ImageFrontEndTuning
+    from tumblenav.settings_rules import validate
 
-    try:
-        return ImageFrontEndTuning.model_validate(raw or {})
-    except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        raise InputError(f"sensor.images.frontend.{loc}: {msg}") from None
+    return validate(ImageFrontEndTuning, raw, "sensor.images.frontend")
 
 
 def prepare(
