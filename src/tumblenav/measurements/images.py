@@ -26,7 +26,12 @@ from numpy.typing import NDArray
 from tumblenav import sensors
 from tumblenav.errors import InputError
 from tumblenav.measurements._attrs import _a
-from tumblenav.measurements.stereo import CAMERA_MODEL, rig_from_dataset, rig_variables
+from tumblenav.measurements.stereo import (
+    CAMERA_MODEL,
+    attitude_variables,
+    rig_from_dataset,
+    rig_variables,
+)
 
 Array = NDArray[np.float64]
 Image = NDArray[np.uint8]
@@ -168,16 +173,7 @@ class StereoImageMeasurements:
                     np.array(right, dtype=object),
                     _a("1", "right image file (8-bit grayscale), relative to this file's folder"),
                 ),
-                "q_CL": (
-                    ("time", "quat"),
-                    self.q_CL,
-                    _a("1", "rig attitude: maps L into C (known to the chaser)"),
-                ),
-                "q_LI": (
-                    ("time", "quat"),
-                    self.q_LI,
-                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
-                ),
+                **attitude_variables(self.q_CL, self.q_LI),
                 **rig_variables(self.rig),
             },
             attrs={

@@ -56,16 +56,7 @@ class StereoMeasurements:
                         "image, not occluded), else 0",
                     ),
                 ),
-                "q_CL": (
-                    ("time", "quat"),
-                    self.q_CL,
-                    _a("1", "rig attitude: maps L into C (known to the chaser)"),
-                ),
-                "q_LI": (
-                    ("time", "quat"),
-                    self.q_LI,
-                    _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
-                ),
+                **attitude_variables(self.q_CL, self.q_LI),
                 **rig_variables(rig),
             },
             attrs={
@@ -96,6 +87,22 @@ class StereoMeasurements:
 CAMERA_MODEL = (
     "pinhole; camera axes x right, y optical axis, z = x cross y; u = cu + f x/y, v = cv + f z/y"
 )
+
+
+def attitude_variables(q_CL: Array, q_LI: Array) -> dict[str, tuple]:
+    """The chaser's own attitudes as dataset variables (every stereo measurement file)."""
+    return {
+        "q_CL": (
+            ("time", "quat"),
+            q_CL,
+            _a("1", "rig attitude: maps L into C (known to the chaser)"),
+        ),
+        "q_LI": (
+            ("time", "quat"),
+            q_LI,
+            _a("1", "LVLH attitude: maps I into L (known to the chaser)"),
+        ),
+    }
 
 
 def rig_variables(rig: sensors.StereoRig) -> dict[str, tuple]:
