@@ -189,8 +189,9 @@ def chang_truth_state(truth: Any, history: EstimateHistory) -> Array:
     ``R_ThatL(k0) = info["R_ThatL_k0"]`` (the identity): ``R_ThatT = R_ThatL(k0) R_LT(k0)``
     (constant, body-fixed), attitude ``q_ThatL(t) = R_ThatT R_TL(t)``, rate relative to L
     ``omega_ThatL_That = R_ThatT (omega_TI_T - R_TL omega_LI_L)``, the mass centre's ``r_L``,
-    ``v_L``, and the offset ``b = R_ThatL(k0) (r_L(k0) - info["map_origin_L_k0"])`` (the mass
-    centre about the estimator's feature map origin). NaN before the estimator has a frame."""
+    ``v_L``, and (``map: registered``, whose layout has the block) the offset ``b = R_ThatL(k0)
+    (r_L(k0) - info["map_origin_L_k0"])`` (the mass centre about the estimator's feature map
+    origin). NaN before the estimator has a frame."""
     from tumblenav.frames import lvlh_rate
 
     lay = history.layout
@@ -212,6 +213,7 @@ def chang_truth_state(truth: Any, history: EstimateHistory) -> Array:
     x[:, lay.nom("rate")] = w_TL_T @ R_ThatT.T
     x[:, lay.nom("position")] = truth.r_L
     x[:, lay.nom("velocity")] = truth.v_L
-    origin = np.asarray(history.info["map_origin_L_k0"], dtype=float)
-    x[:, lay.nom("offset")] = R_ThatL0 @ (truth.r_L[k0] - origin)
+    if "offset" in lay.names():  # map 'registered' only (map 'state' has no map origin)
+        origin = np.asarray(history.info["map_origin_L_k0"], dtype=float)
+        x[:, lay.nom("offset")] = R_ThatL0 @ (truth.r_L[k0] - origin)
     return x

@@ -28,11 +28,21 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, register
 from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
 from tumblenav.estimators.chang2021.model import LAYOUT
+from tumblenav.estimators.chang2021.slam import LAYOUT_POSE, MapMemo, StateSteps
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.measurements import STEREO_TRACKS
 
-__all__ = ["LAYOUT", "PoseEKF", "PoseMemo", "PoseSteps", "PoseTuning"]
+__all__ = [
+    "LAYOUT",
+    "LAYOUT_POSE",
+    "MapMemo",
+    "PoseEKF",
+    "PoseMemo",
+    "PoseSteps",
+    "PoseTuning",
+    "StateSteps",
+]
 
 SKIP_REASONS = (
     "no_start_geometry",
@@ -43,6 +53,7 @@ SKIP_REASONS = (
     "no_rate",
     "outlier_features",
     "gated_out",
+    "wild_epoch",
 )
 
 
@@ -73,23 +84,33 @@ class PoseEKF:
         tun = parse_tuning(scenario.estimator.tuning, PoseTuning)
         orbit = scenario.chaser.orbit
         n = float(orbit.mean_motion_rad_s) if orbit is not None else 0.0
-        steps = PoseSteps(meas=meas, tun=tun, n_orbit=n)
+        steps: PoseSteps | StateSteps
+        if tun.map == "state":
+            steps = StateSteps(meas=meas, tun=tun, n_orbit=n)
+        else:
+            steps = PoseSteps(meas=meas, tun=tun, n_orbit=n)
         r = fold(steps, meas.t)
         skipped = {k: 0 for k in SKIP_REASONS} | r.skipped
-        info: dict[str, Any] = {"convention": "chang2021", "estimates_offset": True}
-        s = r.memo.start if r.memo is not None else None  # the fold's last PoseMemo
+        info: dict[str, Any] = {
+            "convention": "chang2021",
+            "estimates_offset": tun.map == "registered",
+            "map": tun.map,
+            "diverged": bool(r.diverged),
+        }
+        s = r.memo.start if r.memo is not None else None  # the fold's last memo
         if s is not None:
             info.update(
                 frame_epoch=int(s.k0),
                 R_ThatL_k0=np.eye(3).tolist(),  # That := L's orientation at frame_epoch
-                map_origin_L_k0=[float(v) for v in s.origin_L_k0],
                 start_epoch=int(s.k),
             )
+            if tun.map == "registered":
+                info["map_origin_L_k0"] = [float(v) for v in s.origin_L_k0]
         return EstimateHistory(
             t=meas.t,
             x=r.x,
             P=r.P,
-            layout=LAYOUT,
+            layout=steps.layout,
             nis=r.nis,
             nis_dof=r.nis_dof,
             skipped=skipped,

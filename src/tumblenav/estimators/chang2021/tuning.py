@@ -17,6 +17,37 @@ class PoseTuning(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    map: Literal["state", "registered"] = Field(
+        "state",
+        description="where the features' positions about the mass centre live. 'state' "
+        "(tumblenav's, default): each live track's position s_i in That is a state and each "
+        "triangulated feature a measurement rho_i = r + R_LThat s_i (as Hu 2024's filter), "
+        "so the mass centre is what the rotation of the features about it says. "
+        "'registered': Chang 2021 as printed, eq. 27-30 pose fixes from features registered "
+        "once with the current estimate (r_i = R_ThatL (rho_i - r_hat)); eq. 30 then "
+        "reproduces the estimate it registered with and the filter takes it as news "
+        "(circular: measured on chang2021_close point tracks, 10 runs, window 40-120 s, "
+        "position RMS per axis 0.31-0.46 m with NEES/dof 28; see the module docstring of "
+        "tumblenav.estimators.chang2021.slam)",
+    )
+    max_map_features: int = Field(
+        50,
+        ge=3,
+        description="with map 'state': most tracks held in the state (the longest tracked so "
+        "far first; the others are not used). Measured on chang2021_close point tracks",
+    )
+    fej: bool = Field(
+        True,
+        description="with map 'state': first-estimate Jacobians, the attitude columns of each "
+        "feature's measurement evaluated at the feature's first estimate",
+    )
+    divergence_epochs: int = Field(
+        10,
+        ge=1,
+        description="with map 'state': an epoch where fewer than half of the map's observed "
+        "features pass the gate is 'wild' (no update); this many wild epochs in a row stop the "
+        "run as diverged (2 s at 5 Hz)",
+    )
     init_frames: int = Field(
         100,
         ge=3,

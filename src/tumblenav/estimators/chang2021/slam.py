@@ -1,0 +1,343 @@
+"""ekf-pose with the feature map in the state (``map: state``, tumblenav's; beyond Chang 2021).
+
+Why (Chang 2021 eq. 30 is circular without the truth): eq. 30 measures the mass centre as
+``rho_0 = mean(rho_i - R_LThat r_i)`` with ``r_i`` registered when first seen *from the current
+estimate*, ``r_i = R_ThatL (rho_i - r_hat)``. The measurement then reproduces the estimate it
+was registered with, and the filter takes that as new information: its mass centre stays where
+the start put it, with a covariance that shrinks at every epoch (``map: registered``, measured
+in :mod:`.tuning`). Chang sidesteps it by starting from the truth (Sec. 4.2).
+
+Here, as in Hu 2024's filter (:mod:`tumblenav.estimators.hu2024.model`), each live feature's
+position about the mass centre in That, ``s_i``, is a state, and each triangulated feature is a
+measurement of its own::
+
+    x = [q_ThatL, omega_ThatL_That, r_L, v_L | s_1 ... s_m]     (13 + 3m; error 12 + 3m)
+    rho_i = r + R_LThat s_i + n_i,    n_i ~ N(0, Sigma_i)           (Sigma_i: triangulation)
+    H_i = [R_LThat [s_i x], 0, I, 0 | ... R_LThat (column of s_i) ...]   (left error)
+
+(``R_LThat = R_hat_LThat Exp(-dtheta) ~ R_hat_LThat (I - [dtheta x])``, so ``d rho/d dtheta =
+R_hat_LThat [s x]``). The mass centre is then what the data say it is: the point the features
+rotate about while it follows CW; the rotation makes the common shift of ``r`` and the ``s_i``
+observable, so nothing is measured twice.
+
+* Pose block: propagated as in :mod:`.model` (sphere inertia with the Euler-torque process
+  noise of :func:`.filter.rate_process_noise`, CW with white acceleration); the features are
+  constant in That (no process noise: the target is rigid), ``P_px = Phi P_px``.
+* New tracks: ``s_new = R_hat_ThatL (rho_new - r_hat)``, ``J = ds/dx = [-[s x], 0,
+  -R_hat_ThatL, 0]`` (pose columns), covariance ``J P J^T + R_hat_ThatL Sigma R_hat_LThat``,
+  cross-covariance ``J P`` (augmentation of the full joint covariance).
+* Tracks not observed at an epoch are marginalised (their rows and columns removed); at most
+  ``max_map_features`` are kept, the longest tracked first (age so far, causal).
+* Per-feature chi-square gate (``feature_gate_probability``, 3 dof): a rejected feature is
+  counted (``rejected``, ``skipped['gated_out']``) and removed from the state (its track is
+  suspect: a bad match or drift). Joseph-form update, symmetrised.
+* Divergence: an epoch is *wild* when fewer than half of the map's observed features pass the
+  gate (the predicted attitude and position explain less than half the data; no update is
+  made then); ``divergence_epochs`` wild epochs in a row stop the run (``StepInfo(diverged=
+  True)``) rather than let it re-register features from a wrong pose.
+* Start: Chang's q-method (eq. 27-28) and eq. 29 over the first ``init_frames`` frames
+  (:func:`.init.start`: attitude defined at k0, rate line, mass centre from the CW fit with a
+  prior of ``prior_mass_centre_sigma_m`` about the first features' centroid, whose full
+  uncertainty the start keeps); the start epoch's features are then augmented from it.
+
+The belief's ``x`` is the 13-component pose (the reported layout :data:`LAYOUT_POSE`), its
+``P`` the joint (12 + 3m) covariance; the map (track ids and ``s_i``) travels in the memo
+(:class:`MapMemo`); :meth:`StateSteps.report` returns the pose block of ``P``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from tumblenav import rotations as rot
+from tumblenav.dynamics.integrators import discretise
+from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
+from tumblenav.estimators.chang2021.filter import rate_process_noise
+from tumblenav.estimators.chang2021.init import Start, first_usable_epoch, start
+from tumblenav.estimators.chang2021.measurements import FeatureTracks, feature_tracks
+from tumblenav.estimators.chang2021.model import (
+    error_jacobian,
+    process_noise_density,
+    propagate_mean,
+)
+from tumblenav.estimators.chang2021.tuning import PoseTuning
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+LAYOUT_POSE = StateLayout(
+    (
+        Block("attitude", "quat", 3),  # q_ThatL
+        Block("rate", "vector", 3),  # omega_ThatL_That
+        Block("position", "vector", 3),  # r_L: the mass centre
+        Block("velocity", "vector", 3),  # v_L
+    )
+)
+NP = 12  # pose error dimension
+NX = 13  # pose nominal dimension
+_A, _W, _R, _V = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+_MAX_SIGMA = 1e6
+
+
+@dataclass(frozen=True)
+class MapMemo:
+    """The map that travels with the belief: ``ids`` (m,) track indices (the feature axis of
+    the measurements), ``s`` (m, 3) their positions about the mass centre in That (the state's
+    feature block, rows in the order of ``P``'s), the start, and ``wild`` (consecutive wild
+    epochs, see the module docstring)."""
+
+    ids: IntArray
+    s: Array
+    s0: Array
+    start: Start
+    wild: int = 0
+
+
+def measurement_jacobian(q_ThatL: Array, s: Array) -> tuple[Array, Array]:
+    """Pose columns ``d rho_i / d [dtheta, domega, dr, dv]`` (m, 3, 12) and the feature
+    block ``d rho_i / d s_i`` (3, 3) of ``rho_i = r + R_LThat s_i`` (left error)."""
+    R_LT = rot.quat_to_matrix(q_ThatL).T
+    Hp = np.zeros((len(s), 3, NP))
+    Hp[:, :, _A] = R_LT @ rot.skew(s)
+    Hp[:, :, _R] = np.eye(3)
+    return Hp, R_LT
+
+
+def augmentation_jacobian(q_ThatL: Array, s: Array) -> tuple[Array, Array]:
+    """``s = R_ThatL (rho - r)``: pose columns ``ds/d[dtheta, domega, dr, dv]`` (m, 3, 12)
+    at ``s`` (m, 3), and ``ds/d rho`` (3, 3)."""
+    R_TL = rot.quat_to_matrix(q_ThatL)
+    J = np.zeros((len(s), 3, NP))
+    J[:, :, _A] = -rot.skew(s)
+    J[:, :, _R] = -R_TL
+    return J, R_TL
+
+
+def augment(x: Array, P: Array, s_map: Array, rho: Array, Sigma: Array) -> tuple[Array, Array]:
+    """Append features observed at ``rho`` (a, 3) in L with covariances ``Sigma`` (a, 3, 3)
+    to the map ``s_map`` (m, 3) and the joint covariance ``P`` (12 + 3m): returns the new map
+    and covariance (12 + 3(m + a))."""
+    a = len(rho)
+    if a == 0:
+        return s_map, P
+    R_TL = rot.quat_to_matrix(x[0:4])
+    s_new = (rho - x[7:10]) @ R_TL.T
+    J, _ = augmentation_jacobian(x[0:4], s_new)
+    J = J.reshape(3 * a, NP)
+    D = P.shape[0]
+    Pnx = J @ P[:NP, :]  # (3a, D): cross-covariance with the whole state
+    Pnn = Pnx[:, :NP] @ J.T
+    Sig_T = R_TL @ Sigma @ R_TL.T  # (a, 3, 3)
+    idx = np.arange(3 * a).reshape(a, 3)
+    Pnn[idx[:, :, None], idx[:, None, :]] += Sig_T
+    out = np.empty((D + 3 * a, D + 3 * a))
+    out[:D, :D] = P
+    out[D:, :D] = Pnx
+    out[:D, D:] = Pnx.T
+    out[D:, D:] = 0.5 * (Pnn + Pnn.T)
+    return np.vstack([s_map, s_new]), out
+
+
+def _keep(P: Array, s: Array, keep: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """Marginalise the features where ``keep`` is False (their rows and columns go); ``s``
+    (m, ...) the per-feature rows that go with them."""
+    if keep.all():
+        return P, s
+    rows = np.concatenate(
+        [np.arange(NP), (NP + 3 * np.flatnonzero(keep)[:, None] + np.arange(3)).ravel()]
+    )
+    return P[np.ix_(rows, rows)], s[keep]
+
+
+def _collinear(rho: Array) -> bool:
+    """The points (m, 3) lie on a line (or a point): their scatter has two null directions."""
+    ev = np.linalg.eigvalsh(np.cov(rho.T))
+    return not ev[1] > 1e-6 * max(ev[2], 1e-300)
+
+
+@dataclass(frozen=True)
+class StateSteps:
+    """ekf-pose with the feature map in the state, folded by
+    :func:`tumblenav.estimators.base.fold` (module docstring)."""
+
+    meas: Any
+    tun: PoseTuning
+    n_orbit: float
+    layout: StateLayout = LAYOUT_POSE
+
+    @functools.cached_property
+    def tracks(self) -> FeatureTracks:
+        return feature_tracks(self.meas)
+
+    @functools.cached_property
+    def inertia(self) -> Array:
+        return self.tun.inertia_matrix()
+
+    @functools.cached_property
+    def age(self) -> IntArray:
+        """(n, N): epochs each track has been observed in a row up to and including k."""
+        ok = self.tracks.ok_p
+        a = np.zeros(ok.shape, np.int64)
+        run = np.zeros(ok.shape[1], np.int64)
+        for k in range(ok.shape[0]):
+            run = np.where(ok[k], run + 1, 0)
+            a[k] = run
+        return a
+
+    @functools.cached_property
+    def k0(self) -> int | None:
+        return first_usable_epoch(self.tracks, self.tun, len(self.meas.t) - 1)
+
+    def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
+        """The start (:func:`.init.start`, Chang's q-method and eq. 29 over the window), then
+        the start epoch's features augmented from it."""
+        k0 = self.k0
+        if k0 is None or k < k0:
+            return None, StepInfo(skipped={"no_start_geometry": 1})
+        if k < k0 + self.tun.init_frames - 1:
+            return None, StepInfo(skipped={"initialising": 1})
+        s = start(self.tracks, self.meas.t, k0, k, self.tun, self.n_orbit)
+        if s is None:
+            return None, StepInfo(skipped={"initialising": 1})
+        x = s.x[:NX].copy()
+        P = s.P[:NP, :NP].copy()
+        # The start's CW fit treats the window's map origins as independent (they are not: the
+        # map is built from its own poses) and its r, v covariance has the rotating-offset
+        # structure only; the filter starts from a plain prior instead: the mass centre within
+        # prior_mass_centre_sigma_m of the fit on each axis, its velocity within |omega| times
+        # that (the offset rotating with the target), uncorrelated.
+        sig = self.tun.prior_mass_centre_sigma_m
+        w = float(np.linalg.norm(x[4:7]))
+        P[6:12, :] = 0.0
+        P[:, 6:12] = 0.0
+        P[_R, _R] = (s.P[_R, _R].trace() / 3 + sig**2) * np.eye(3)
+        P[_V, _V] = (s.P[_V, _V].trace() / 3 + (w * sig) ** 2) * np.eye(3)
+        ids, s_map, P = self._augment(x, P, np.zeros(0, np.int64), np.zeros((0, 6)), k)
+        memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
+        return Belief(float(self.meas.t[k]), x, P, LAYOUT_POSE, memo), StepInfo()
+
+    def predict(self, belief: Belief, t: float) -> Belief:
+        dt = t - belief.t
+        if dt <= 0.0:
+            return belief
+        x16 = np.concatenate([belief.x, np.zeros(3)])
+        q_rate = rate_process_noise(x16, self.tun, self.n_orbit)
+        F = error_jacobian(x16, self.inertia, self.n_orbit)[:NP, :NP]
+        Qc = process_noise_density(q_rate, self.tun.accel_noise_m2_s3)[:NP, :NP]
+        Phi, Qd = discretise(F, Qc, dt)
+        x = propagate_mean(x16, dt, self.inertia, self.n_orbit)[:NX]
+        P = belief.P.copy()
+        P[:NP, :] = Phi @ P[:NP, :]
+        P[:, :NP] = P[:, :NP] @ Phi.T
+        P[:NP, :NP] += Qd
+        return Belief(t, x, 0.5 * (P + P.T), LAYOUT_POSE, belief.memo)
+
+    def _augment(
+        self, x: Array, P: Array, ids: IntArray, s_map: Array, k: int
+    ) -> tuple[IntArray, Array, Array]:
+        """Fill the free slots (``max_map_features``) with the observed tracks not in the
+        map, the longest tracked so far first."""
+        free = self.tun.max_map_features - len(ids)
+        if free <= 0:
+            return ids, s_map, P
+        tr = self.tracks
+        obs = np.flatnonzero(tr.ok_p[k])
+        cand = obs[~np.isin(obs, ids)]
+        if len(cand) == 0:
+            return ids, s_map, P
+        order = np.argsort(-self.age[k, cand], kind="stable")
+        new = cand[order[:free]]
+        s3, P = augment(x, P, s_map[:, :3], tr.p[k, new], tr.P[k, new])
+        s_new = s3[len(ids) :]
+        s_map = np.vstack([s_map, np.hstack([s_new, s_new])])  # current and first estimates
+        return np.concatenate([ids, new]), s_map, P
+
+    def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
+        x, P, memo = belief.x, belief.P, belief.memo
+        ids, s_map = memo.ids, np.hstack([memo.s, memo.s0])  # (m, 6): current, first
+        if started:
+            return belief, StepInfo()
+        tr, tun = self.tracks, self.tun
+        skipped: dict[str, int] = {}
+        # tracks that ended (not observed now): marginalised
+        seen = tr.ok_p[k, ids]
+        P, s_map = _keep(P, s_map, seen)
+        ids = ids[seen]
+        nis, dof, rejected, wild = float("nan"), 0, 0, memo.wild
+        m = len(ids)
+        if m == 0:
+            skipped["no_features" if not tr.ok_p[k].any() else "too_few_features"] = 1
+        elif m < tun.min_features:
+            skipped["too_few_features"] = 1
+        elif _collinear(tr.p[k, ids]):
+            skipped["degenerate_geometry"] = 1  # the points do not fix a rotation: no update
+            return Belief(
+                belief.t,
+                x,
+                P,
+                LAYOUT_POSE,
+                MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild),
+            ), StepInfo(skipped=skipped)
+        else:
+            D = P.shape[0]
+            # first-estimate Jacobian (FEJ) of the attitude columns, see the module docstring
+            Hp, R_LT = measurement_jacobian(x[0:4], s_map[:, 3:] if tun.fej else s_map[:, :3])
+            nu = tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T)  # (m, 3)
+            Sig = tun.measurement_noise_scale * tr.P[k, ids]
+            fcols = NP + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
+            H = np.zeros((3 * m, D))
+            H[:, :NP] = Hp.reshape(3 * m, NP)
+            rows = np.arange(3 * m).reshape(m, 3)
+            H[rows[:, :, None], fcols[:, None, :]] = R_LT
+            HP = H @ P
+            S_all = HP @ H.T  # per-feature blocks: H_i P H_i^T
+            S_blk = S_all[rows[:, :, None], rows[:, None, :]] + Sig  # (m, 3, 3)
+            d2 = np.einsum("mi,mij,mj->m", nu, np.linalg.inv(S_blk), nu)
+            ok = d2 <= chi2.ppf(tun.feature_gate_probability, 3)
+            rejected = int(m - ok.sum())
+            if rejected:
+                skipped["gated_out"] = rejected
+            if ok.sum() < 0.5 * m:
+                wild += 1  # the prediction explains less than half the map: no update
+                skipped["wild_epoch"] = 1
+                if wild >= tun.divergence_epochs:
+                    return belief, StepInfo(diverged=True, skipped=skipped | {"diverged": 1})
+            else:
+                wild = 0
+                r_ok = rows[ok].ravel()
+                Hk, nuk = H[r_ok], nu[ok].ravel()
+                Rk = np.zeros((len(r_ok), len(r_ok)))
+                ro = np.arange(len(r_ok)).reshape(-1, 3)
+                Rk[ro[:, :, None], ro[:, None, :]] = Sig[ok]
+                Sk = S_all[np.ix_(r_ok, r_ok)] + Rk
+                L = np.linalg.cholesky(Sk)
+                Kt = np.linalg.solve(L.T, np.linalg.solve(L, HP[r_ok]))  # S^-1 H P = K^T
+                K = Kt.T
+                A = np.eye(D) - K @ Hk
+                P = A @ P @ A.T + K @ Rk @ K.T  # Joseph form
+                P = 0.5 * (P + P.T)
+                dx = K @ nuk
+                x = LAYOUT_POSE.boxplus(x, dx[:NP])
+                s_map[:, :3] += dx[NP:].reshape(m, 3)
+                w = np.linalg.solve(L, nuk)
+                nis, dof = float(w @ w), len(nuk)
+                # rejected features leave the state (suspect tracks)
+                P, s_map = _keep(P, s_map, ok)
+                ids = ids[ok]
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))) or (
+            P.shape[0] and np.max(np.diag(P)) > _MAX_SIGMA**2
+        ):
+            return belief, StepInfo(diverged=True, skipped={"diverged": 1})
+        ids, s_map, P = self._augment(x, P, ids, s_map, k)
+        return Belief(
+            belief.t, x, P, LAYOUT_POSE, MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild)
+        ), (StepInfo(nis=nis, dof=dof, rejected=rejected, skipped=skipped))
+
+    def report(self, belief: Belief, k: int) -> Array:
+        return belief.P[:NP, :NP]
