@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import secrets
 import signal
 import time
 import traceback
@@ -42,7 +43,7 @@ from rich.progress import (
 )
 
 from tumblenav import evaluation, io
-from tumblenav.campaign.store import CampaignStore, run_seed
+from tumblenav.campaign.store import CampaignStore, code_fingerprint, run_seed
 from tumblenav.errors import InputError, Interrupted
 from tumblenav.estimators import base as est_base
 from tumblenav.estimators.context import context_from_scenario
@@ -305,7 +306,7 @@ def _execute(
             prog.update(task, completed=finished())
 
         if scheduler:
-            _execute_dask(scenario, estimator_name, base_seed, chunks, scheduler, record)
+            _execute_dask(scenario, estimator_name, base_seed, chunks, scheduler, record, con)
         else:
             _execute_local(
                 scenario,
@@ -368,11 +369,61 @@ def _execute_local(
             store.remove_partial()
 
 
-def _execute_dask(
-    scenario, estimator_name, base_seed, chunks, address: str, record: Callable
-) -> None:
+def _dask_chunk(
+    scenario: Scenario, estimator_name: str, base_seed: int, ks: Sequence[int]
+) -> tuple[str, list[tuple[int, Any, str | None]]]:
+    """A Dask task: :func:`evaluate_runs` on a worker, returned with the worker's
+    :func:`~tumblenav.campaign.store.code_fingerprint` so that the parent stores only what
+    its own code would have computed."""
+    # one worker per core (dask worker --nthreads 1): a renderer's second thread would contend
+    os.environ.setdefault("TUMBLENAV_RENDER_THREADS", "1")
+    return code_fingerprint(), evaluate_runs(scenario, estimator_name, base_seed, ks)
+
+
+def _other_code(worker: str, theirs: object) -> InputError:
+    return InputError(
+        f"Dask worker {worker} runs other tumblenav code ({theirs}, here {code_fingerprint()}): "
+        "install the same tumblenav on every machine; stored runs are kept",
+        "--scheduler",
+    )
+
+
+def _check_workers(client: Any) -> None:
+    """Refuse the workers connected now that cannot import tumblenav or run other code than
+    this process (their results could differ from the stored runs'). Workers that connect
+    later are checked on each result (:func:`_dask_chunk`)."""
     try:
-        from dask.distributed import Client, as_completed
+        theirs = client.run(code_fingerprint, on_error="return")
+    except Exception as exc:  # noqa: BLE001 - the scheduler went away: say so, in one line
+        raise InputError(
+            f"cannot ask the Dask workers their version ({exc})", "--scheduler"
+        ) from None
+    for worker, fp in sorted(theirs.items()):
+        if isinstance(fp, BaseException):
+            raise InputError(
+                f"Dask worker {worker} cannot run tumblenav ({fp.__class__.__name__}: {fp}): "
+                "install the same tumblenav on every machine",
+                "--scheduler",
+            )
+        if fp != code_fingerprint():
+            raise _other_code(worker, fp)
+
+
+def _execute_dask(
+    scenario, estimator_name, base_seed, chunks, address: str, record: Callable, con: Console
+) -> None:
+    """Compute ``chunks`` as Dask tasks (one per chunk, the local runner's chunks) and
+    ``record`` (store, here in the parent) each chunk's runs as it comes back: workers need no
+    shared filesystem, and only a result that reached the parent is a finished run.
+
+    A worker that dies is Dask's to handle: the scheduler reschedules its chunk on another
+    worker (a chunk whose workers died ``distributed.scheduler.allowed-failures`` + 1 times,
+    default 4, stops the campaign); chunks already stored are never resubmitted, and a chunk's
+    future is released as soon as it is stored so that losing the worker that held it does not
+    recompute it. On an interrupt (or any error) the chunks not yet stored are cancelled.
+    """
+    try:
+        from dask.distributed import Client, KilledWorker, as_completed
     except ImportError:
         raise InputError(
             "--scheduler needs dask.distributed: pip install 'tumblenav[cluster]'"
@@ -382,12 +433,40 @@ def _execute_dask(
     except OSError as exc:
         raise InputError(f"cannot reach the Dask scheduler ({exc})", address) from None
     with client:
-        futures = [
-            client.submit(evaluate_runs, scenario, estimator_name, base_seed, ks, pure=False)
-            for ks in chunks
-        ]
-        for fut in as_completed(futures):
-            record(fut.result())
+        _check_workers(client)
+        if not client.scheduler_info().get("workers"):
+            con.print(f"no Dask worker at {address} yet: the runs start when one connects")
+        tag = secrets.token_hex(4)  # keys readable on the dashboard, unique to this submit
+        futures = {
+            client.submit(
+                _dask_chunk,
+                scenario,
+                estimator_name,
+                base_seed,
+                ks,
+                key=f"tumblenav-{estimator_name}-runs-{ks[0]}-{ks[-1]}-{tag}",
+                priority=-i,  # in run order, as the local runner
+            ): ks
+            for i, ks in enumerate(chunks)
+        }
+        try:
+            for fut in as_completed(list(futures)):
+                ks = futures.pop(fut)
+                try:
+                    fp, results = fut.result()
+                except KilledWorker as exc:
+                    raise RuntimeError(
+                        f"Dask workers died computing runs {ks[0]}-{ks[-1]} ({exc}; out of "
+                        "memory?): the stored runs are kept: run the same command again to "
+                        "resume"
+                    ) from None
+                if fp != code_fingerprint():  # a worker that connected after the check
+                    raise _other_code(", ".join(client.who_has(fut).get(fut.key, ())), fp)
+                fut.release()  # the scheduler forgets it: a lost worker does not recompute it
+                record(results)
+        finally:
+            if futures:  # interrupted or failed: nothing more is computed for this campaign
+                client.cancel(list(futures), force=True)
 
 
 def collect(store: CampaignStore, runs: int) -> tuple[np.ndarray, dict[str, np.ndarray], dict]:
