@@ -57,6 +57,7 @@ from scipy.stats import chi2
 
 from tumblenav import rotations as rot
 from tumblenav.dynamics.integrators import discretise
+from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
 from tumblenav.estimators.chang2021.filter import rate_process_noise
 from tumblenav.estimators.chang2021.init import Start, first_usable_epoch, start
@@ -218,9 +219,35 @@ class StateSteps:
         P[:, 6:12] = 0.0
         P[_R, _R] = (s.P[_R, _R].trace() / 3 + sig**2) * np.eye(3)
         P[_V, _V] = (s.P[_V, _V].trace() / 3 + (w * sig) ** 2) * np.eye(3)
+        if self.tun.start_replay:
+            return self._replay(s, x, P)
         ids, s_map, P = self._augment(x, P, np.zeros(0, np.int64), np.zeros((0, 6)), k)
         memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
         return Belief(float(self.meas.t[k]), x, P, LAYOUT_POSE, memo), StepInfo()
+
+    def _replay(self, s: Start, x_end: Array, P_end: Array) -> tuple[Belief | None, StepInfo]:
+        """The filter run over the start window from k0, where That is defined (attitude
+        identity, exact), with the window's rate and mass-centre fit (propagated back to k0)
+        as a loose prior: the start's attitude is then the filter's over the window, not the
+        window's last q-method fix (whose error the unobservable attitude gauge would keep)."""
+        tt = self.meas.t
+        k0, k1 = s.k0, s.k
+        x = x_end.copy()
+        x[0:4] = rot.IDENTITY
+        Phi = cw_stm(self.n_orbit, float(tt[k0] - tt[k1]))
+        x[7:13] = Phi @ x_end[7:13]
+        P = np.zeros((NP, NP))
+        P[_A, _A] = 1e-12 * np.eye(3)
+        P[_W, _W] = P_end[_W, _W] * self.tun.start_rate_inflation
+        P[_R, _R] = P_end[_R, _R]
+        P[_V, _V] = P_end[_V, _V]
+        ids, s_map, P = self._augment(x, P, np.zeros(0, np.int64), np.zeros((0, 6)), k0)
+        b = Belief(float(tt[k0]), x, P, LAYOUT_POSE, MapMemo(ids, s_map[:, :3], s_map[:, 3:], s))
+        for k in range(k0 + 1, k1 + 1):
+            b, info = self.update(self.predict(b, float(tt[k])), k, False)
+            if info.diverged:
+                return None, StepInfo(skipped={"initialising": 1})
+        return b, StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t

@@ -41,6 +41,18 @@ class PoseTuning(BaseModel):
         description="with map 'state': first-estimate Jacobians, the attitude columns of each "
         "feature's measurement evaluated at the feature's first estimate",
     )
+    start_replay: bool = Field(
+        True,
+        description="with map 'state': the filter is run over the start window from k0 "
+        "(attitude exact there by definition) with the window's rate and mass-centre fit as "
+        "its prior, instead of starting from the window's last q-method fix",
+    )
+    start_rate_inflation: float = Field(
+        25.0,
+        ge=1,
+        description="with start_replay: the window's rate fit covariance is multiplied by this "
+        "for the replay's prior (the same frames are used twice: the prior must be loose)",
+    )
     divergence_epochs: int = Field(
         10,
         ge=1,
