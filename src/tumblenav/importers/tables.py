@@ -1,0 +1,127 @@
+"""Tables of a user's files: CSV (any reader's floats, parsed exactly: Python's round-trip
+float parsing) or Parquet (float64 columns as stored; needs pyarrow, the ``parquet`` extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tumblenav.errors import InputError
+
+__all__ = ["read_table", "row_name", "write_table"]
+
+
+def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
+    """Columns of a CSV or Parquet file by name: float arrays (empty cells NaN), the columns
+    named in ``text`` as strings (empty cells ''). InputError naming the file and the row."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", str(path))
+    if path.suffix.lower() in (".parquet", ".pq"):
+        return _read_parquet(path, text)
+    import pandas as pd  # type: ignore[import-untyped]  # xarray's dependency
+
+    try:
+        df = pd.read_csv(
+            path,
+            dtype={c: str for c in text},
+            keep_default_na=False,
+            float_precision="round_trip",
+            skipinitialspace=True,
+            comment="#",
+        )
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise InputError(
+            f"not a readable CSV file ({str(exc).splitlines()[0]})", str(path)
+        ) from None
+    out: dict[str, NDArray] = {}
+    for name in df.columns:
+        col = df[name]
+        key = str(name).strip()
+        if key in text:
+            out[key] = np.array([str(v).strip() for v in col], dtype=object)
+            continue
+        out[key] = _floats(col.to_numpy(), key, path, lambda i: i + 2)
+    return out
+
+
+def _floats(values: NDArray, name: str, path: Path, row) -> NDArray[np.float64]:
+    if values.dtype.kind in "fiu":
+        return values.astype(float)
+    out = np.empty(len(values))
+    for i, v in enumerate(values):
+        s = str(v).strip()
+        if s == "" or s.lower() in ("nan", "na"):
+            out[i] = np.nan
+            continue
+        try:
+            out[i] = float(s)
+        except ValueError:
+            raise InputError(
+                f"row {row(i)}, column {name}: not a number ({s!r})", str(path)
+            ) from None
+    return out
+
+
+def _read_parquet(path: Path, text: tuple[str, ...]) -> dict[str, NDArray]:
+    try:
+        import pyarrow.parquet as pq  # type: ignore[import-untyped]
+    except ImportError:
+        raise InputError(
+            "reading Parquet needs pyarrow: pip install 'tumblenav[parquet]' (or give a CSV file)",
+            str(path),
+        ) from None
+    try:
+        table = pq.read_table(path)
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for a bad file
+        raise InputError(
+            f"not a readable Parquet file ({exc.__class__.__name__})", str(path)
+        ) from None
+    out: dict[str, NDArray] = {}
+    for name in table.column_names:
+        col = table.column(name).to_numpy(zero_copy_only=False)
+        if name in text:
+            out[name] = np.array(["" if v is None else str(v) for v in col], dtype=object)
+        else:
+            out[name] = _floats(np.asarray(col), name, path, lambda i: i + 1)
+    return out
+
+
+def row_name(path: Path, i: int) -> str:
+    """How a message names data row ``i`` (0-based): the CSV line (header = line 1), or the
+    Parquet row counted from 1."""
+    if Path(path).suffix.lower() in (".parquet", ".pq"):
+        return f"row {i + 1}"
+    return f"row {i + 2}"
+
+
+def write_table(path: Path, columns: dict[str, NDArray]) -> Path:
+    """Write columns as CSV (floats as ``repr``: exact; NaN as empty cells) or Parquet (float64)
+    atomically."""
+    from tumblenav.io import atomic_write
+
+    path = Path(path)
+    names = list(columns)
+    n = len(next(iter(columns.values()))) if columns else 0
+    if path.suffix.lower() in (".parquet", ".pq"):
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.table({k: pa.array(np.asarray(v)) for k, v in columns.items()})
+        return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
+
+    def cell(v) -> str:
+        if isinstance(v, (float, np.floating)):
+            return "" if not np.isfinite(v) else repr(float(v))
+        if isinstance(v, (int, np.integer)):
+            return str(int(v))
+        return str(v)
+
+    lines = [",".join(names)]
+    cols = [np.asarray(columns[k]) for k in names]
+    for i in range(n):
+        lines.append(",".join(cell(c[i]) for c in cols))
+    text = "\n".join(lines) + "\n"
+    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
