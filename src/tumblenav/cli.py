@@ -278,6 +278,45 @@ def compare(
     out.print(f"results in {output}")
 
 
+@app.command("import", cls=StrictCommand)
+def import_(
+    kind: Annotated[str, typer.Argument(help="stereo-tracks, depth-clouds or stereo-images")],
+    path: Annotated[
+        Path,
+        typer.Argument(
+            help="the tracks table (CSV/Parquet) or the index table (CSV) of the clouds/images"
+        ),
+    ],
+    output: OutOpt = Path("out/import"),
+    calibration: Annotated[
+        Path | None,
+        typer.Option(help="calibration/context YAML (default: calibration.yaml beside PATH)"),
+    ] = None,
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            help="scenario the written scenario.yaml starts from (estimator, tuning); default: "
+            "hu2024 for tracks, yu2019 for clouds, chang2021_close for images"
+        ),
+    ] = None,
+) -> None:
+    """Your own measurements in: write DIR/measurements.nc and DIR/scenario.yaml (the
+    calibration's sensor), for `tumblenav estimate DIR/scenario.yaml --measurements DIR`."""
+    from tumblenav.importers import import_measurements
+
+    result = import_measurements(kind, path, output, calibration, scenario)
+    for line in result.warnings:
+        err.print(f"[bold yellow]warning:[/] {escape(line)}", highlight=False, soft_wrap=True)
+    for f in result.files:
+        out.print(f"wrote {escape(str(f))}", highlight=False, soft_wrap=True)
+    out.print(
+        f"{result.epochs} epochs of {kind}; next: tumblenav estimate "
+        f"{escape(str(output / 'scenario.yaml'))} --measurements {escape(str(output))}",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
 @app.command(cls=StrictCommand)
 def reproduce(
     paper: Annotated[str, typer.Argument(help="hu2024, yu2019, chang2021 or kabir2025")],

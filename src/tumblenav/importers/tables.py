@@ -1,5 +1,5 @@
-"""Tables of a user's files: CSV (any reader's floats, parsed exactly: Python's round-trip
-float parsing) or Parquet (float64 columns as stored; needs pyarrow, the ``parquet`` extra)."""
+"""Tables of a user's files: CSV (Python's csv module and ``float``: correctly rounded, so a
+``repr`` written float comes back bit for bit; '#' lines are comments) or Parquet (float64 columns as stored; needs pyarrow, the ``parquet`` extra)."""
 
 from __future__ import annotations
 
@@ -21,29 +21,27 @@ def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
         raise InputError("file not found", str(path))
     if path.suffix.lower() in (".parquet", ".pq"):
         return _read_parquet(path, text)
-    import pandas as pd  # type: ignore[import-untyped]  # xarray's dependency
+    import csv
 
     try:
-        df = pd.read_csv(
-            path,
-            dtype={c: str for c in text},
-            keep_default_na=False,
-            float_precision="round_trip",
-            skipinitialspace=True,
-            comment="#",
-        )
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise InputError(
-            f"not a readable CSV file ({str(exc).splitlines()[0]})", str(path)
-        ) from None
+        with path.open(newline="", encoding="utf-8") as fh:
+            lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
+        rows = list(csv.reader(lines, skipinitialspace=True))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"not a readable CSV file ({exc})", str(path)) from None
+    if not rows:
+        raise InputError("empty CSV file (no header row)", str(path))
+    header = [h.strip() for h in rows[0]]
+    body = rows[1:]
+    for i, r in enumerate(body):
+        if len(r) != len(header):
+            raise InputError(
+                f"row {i + 2}: {len(r)} cells, the header has {len(header)}", str(path)
+            )
     out: dict[str, NDArray] = {}
-    for name in df.columns:
-        col = df[name]
-        key = str(name).strip()
-        if key in text:
-            out[key] = np.array([str(v).strip() for v in col], dtype=object)
-            continue
-        out[key] = _floats(col.to_numpy(), key, path, lambda i: i + 2)
+    for c, key in enumerate(header):
+        cells = np.array([r[c].strip() for r in body], dtype=object)
+        out[key] = cells if key in text else _floats(cells, key, path, lambda i: i + 2)
     return out
 
 
