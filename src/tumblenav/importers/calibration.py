@@ -284,7 +284,7 @@ def stereo_calibration(d: dict, where: str) -> StereoCalibration:
     R = _matrix(d, "R", (3, 3), where)
     if not _is_rotation(R):
         raise InputError(
-            "R is not a rotation matrix (R R^T = I and det R = +1 within 1e-6; det R = "
+            "not a rotation matrix (R R^T = I and det R = +1 within 1e-6; det R = "
             f"{np.linalg.det(R):.6g})",
             f"{where}: R",
         )

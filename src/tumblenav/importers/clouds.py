@@ -257,7 +257,9 @@ def read_index(path: Path, columns: tuple[str, ...]) -> tuple[Array, dict[str, N
     d = np.diff(t)
     for i in np.flatnonzero(d <= 0)[:1]:
         what = "duplicate timestamp" if d[i] == 0 else "unsorted: earlier than the row before"
-        raise InputError(f"{row_name(path, int(i) + 1)}: t_s {t[i + 1]!r}: {what}", str(path))
+        raise InputError(
+            f"{row_name(path, int(i) + 1)}: t_s {float(t[i + 1])!r}: {what}", str(path)
+        )
     return t, cols
 
 

@@ -70,8 +70,8 @@ def read_tracks(path: Path) -> TrackTable:
     if len(back):
         i = int(back[0]) + 1
         raise InputError(
-            f"{row_name(path, i)}: t_s {t_all[i]!r} is earlier than the row before "
-            f"({t_all[i - 1]!r}): sort the rows by time",
+            f"{row_name(path, i)}: t_s {float(t_all[i])!r} is earlier than the row before "
+            f"({float(t_all[i - 1])!r}): sort the rows by time",
             str(path),
         )
     px = np.stack([cols[c] for c in COLUMNS[2:]], axis=1).reshape(-1, 2, 2)  # row, cam, uv
@@ -101,7 +101,7 @@ def read_tracks(path: Path) -> TrackTable:
         k, j = int(epoch[r]), index[fid[r]]
         if seen[k, j]:
             raise InputError(
-                f"{row_name(path, r)}: feature {fid[r]} twice at t_s {t_all[r]!r} "
+                f"{row_name(path, r)}: feature {fid[r]} twice at t_s {float(t_all[r])!r} "
                 "(duplicate timestamp for this feature)",
                 str(path),
             )
@@ -134,7 +134,7 @@ def tracks_measurements(
         if one_camera == "error":
             k, j = (int(x) for x in np.argwhere(mono)[0])
             raise InputError(
-                f"feature {table.labels[j]} at t_s {table.t[k]!r} is seen by one camera only "
+                f"feature {table.labels[j]} at t_s {float(table.t[k])!r} is seen by one camera only "
                 f"({table.one_camera} such sightings; set one_camera_sightings: drop or keep in "
                 f"{cfg_path.name} to accept them)",
                 str(path),
