@@ -206,3 +206,20 @@ def test_estimate_reads_png_pairs_and_reports_the_front_end(tmp_path: Path, caps
     code, err = run("est2")
     assert code == 2 and "000007_left.png" in err and "not found" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "est2").exists()
+
+
+def test_files_hold_the_scene_top_first(tmp_path: Path):
+    """In memory row j holds v in [j, j+1), v growing up the scene (the camera's z); the PNG
+    files hold the rows as a camera gives them, the scene's top first."""
+    from tumblenav.measurements.images import read_frame, write_frame
+
+    img = np.zeros((48, 64), np.uint8)
+    img[0] = 255  # v in [0, 1): the bottom of the scene
+    write_frame(tmp_path / "f.png", img)
+    raw = cv2.imread(str(tmp_path / "f.png"), cv2.IMREAD_UNCHANGED)
+    assert raw[-1].min() == 255 and raw[0].max() == 0  # the file's last row
+    assert np.array_equal(read_frame(tmp_path / "f.png", (48, 64)), img)
+    # a point above the optical axis (z > 0) projects to v > cv: the upper half of the file
+    rig = sensors.parallel_rig(50.0, 0.3, (64, 48))
+    uv, _ = sensors.project(rig, np.array([[0.0, 5.0, 1.0]]))
+    assert uv[0, 0, 1] > 24

@@ -321,8 +321,9 @@ def plot_image_pair(meas, path: str | Path, title: str = "") -> Path:
             ax = axes[row, cam]
             img = pair[cam]
             h, w = img.shape
-            # pixel (i, j) covers [i, i+1) x [j, j+1) in tumblenav's (u, v)
-            ax.imshow(img, cmap="gray", vmin=0, vmax=255, extent=(0, w, h, 0))
+            # pixel (i, j) covers [i, i+1) x [j, j+1) in tumblenav's (u, v); v grows along the
+            # camera's z axis, up the scene: drawn upwards, the view is the scene's
+            ax.imshow(img, cmap="gray", vmin=0, vmax=255, origin="lower", extent=(0, w, 0, h))
             ax.set_title(f"{name} camera, t = {meas.t[k]:.1f} s", fontsize=9)
             ax.set_xlabel("u [px]")
             ax.set_ylabel("v [px]")
@@ -842,7 +843,7 @@ def plot_tracked_frame(
         ax = axes[cam]
         img = images[cam]
         h, w = img.shape
-        ax.imshow(img, cmap="gray", vmin=0, vmax=255, extent=(0, w, h, 0))
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255, origin="lower", extent=(0, w, 0, h))
         ax.scatter(
             uv[cam, :, 0], uv[cam, :, 1], s=14, facecolors="none", edgecolors=colours, lw=0.8
         )
@@ -855,7 +856,7 @@ def plot_tracked_frame(
                     us = np.array([0.0, w])
                     ax.plot(us, -(a * us + c) / b, "-", color=colours[j], lw=0.5, alpha=0.7)
         ax.set_xlim(0, w)
-        ax.set_ylim(h, 0)
+        ax.set_ylim(0, h)  # v up the scene (see plot_image_pair)
         ax.set_xlabel("u [px]")
         ax.set_ylabel("v [px]")
         ax.set_title(f"{name}: {m} {'tracked' if cam == 0 else 'matched'} features", fontsize=9)

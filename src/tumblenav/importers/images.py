@@ -1,8 +1,9 @@
 """Stereo image pairs: an index table (``t_s, left, right``) naming 8-bit grayscale PNG files
 (paths relative to the index), with a stereo calibration. The images are checked (readable,
-grayscale, the calibration's size) and copied into the output's ``images/`` folder -- turned
-upside down for ``camera_axes: opencv`` (tumblenav's image rows grow along its camera z axis,
-see :mod:`tumblenav.importers.calibration`)."""
+grayscale, the calibration's size) and copied into the output's ``images/`` folder: as they are
+for ``camera_axes: opencv`` (a camera's images, top of the scene first, which is how
+measurement files hold them), turned over for ``camera_axes: tumblenav`` (rows in the order of
+tumblenav's ``v``, which grows up the scene: :mod:`tumblenav.measurements.images`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from tumblenav import rotations as rot
 from tumblenav.errors import InputError
 from tumblenav.importers.calibration import load_context, stereo_calibration
 from tumblenav.measurements import StereoImageMeasurements
-from tumblenav.measurements.images import read_png, write_png
+from tumblenav.measurements.images import read_png, write_frame
 
 __all__ = ["image_measurements"]
 
@@ -72,11 +73,11 @@ def image_measurements(path: Path, cfg: dict, cal_path: Path, out: Path):
                     f"{exc.what} ({row_name(path, i)} of {path.name})", exc.where
                 ) from None
             target = out / dest
-            if cal.axes == "opencv":
-                write_png(target, np.ascontiguousarray(img[::-1]))
-            else:
+            if cal.axes == "opencv":  # a camera's own image: the measurement file as it is
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(src, target)
+            else:  # rows in tumblenav's order (row j = v): files hold the scene's top first
+                write_frame(target, img)
             files.append(target)
     t_offset = float(t_file[0])
     t = t_file - t_offset if t_offset != 0 else t_file

@@ -8,6 +8,12 @@ file names of the left and right image) and the images themselves, 8-bit graysca
 (``images/000000_left.png``, ``images/000000_right.png``, ... by default), named relative to the
 folder. Images are read one pair at a time: a run of 1024 x 1024 pairs does not fit in memory.
 
+Orientation: in memory an image's row j holds ``v`` in [j, j+1), and ``v`` grows along the
+camera's ``z = x cross y`` axis, which points *up* in the scene (x right, y along the optical
+axis). The files hold the rows as a camera delivers them, top of the scene first (the view a
+person expects), so :func:`read_frame` and :func:`write_frame` turn the rows over; a file row
+``r`` holds ``v`` in ``[H - r - 1, H - r)``.
+
 In memory the pixels come from a :class:`FrameSource`: the files, or the renderer of a
 simulation (rendering each pair when it is asked for, deterministic per epoch).
 """
@@ -36,7 +42,15 @@ from tumblenav.measurements.stereo import (
 Array = NDArray[np.float64]
 Image = NDArray[np.uint8]
 
-__all__ = ["FrameSource", "PngFrames", "StereoImageMeasurements", "read_png", "write_png"]
+__all__ = [
+    "FrameSource",
+    "PngFrames",
+    "StereoImageMeasurements",
+    "read_frame",
+    "read_png",
+    "write_frame",
+    "write_png",
+]
 
 
 class FrameSource(Protocol):
@@ -90,6 +104,16 @@ def write_png(path: Path, image: Image) -> Path:
     return atomic_write(Path(path), _write)
 
 
+def read_frame(path: Path, shape_hw: tuple[int, int] | None = None) -> Image:
+    """A measurement image file (top of the scene first) as tumblenav's array (row j = v)."""
+    return np.ascontiguousarray(read_png(path, shape_hw)[::-1])
+
+
+def write_frame(path: Path, image: Image) -> Path:
+    """tumblenav's image array (row j = v) as a measurement file, top of the scene first."""
+    return write_png(path, np.ascontiguousarray(np.asarray(image)[::-1]))
+
+
 @dataclass(frozen=True)
 class PngFrames:
     """Image pairs read from files (names relative to ``root``)."""
@@ -104,8 +128,8 @@ class PngFrames:
 
     def pair(self, k: int) -> tuple[Image, Image]:
         return (
-            read_png(self.root / self.left[k], self.shapes_hw[0]),
-            read_png(self.root / self.right[k], self.shapes_hw[1]),
+            read_frame(self.root / self.left[k], self.shapes_hw[0]),
+            read_frame(self.root / self.right[k], self.shapes_hw[1]),
         )
 
 
@@ -151,8 +175,8 @@ class StereoImageMeasurements:
         directory = Path(directory)
         left, right = self.file_names(len(self.t))
         for k, (img_l, img_r) in enumerate(self.pairs()):
-            write_png(directory / left[k], img_l)
-            write_png(directory / right[k], img_r)
+            write_frame(directory / left[k], img_l)
+            write_frame(directory / right[k], img_r)
             if progress is not None:
                 progress(k)
         ds = self.to_dataset(scenario_name, left, right)
