@@ -263,3 +263,34 @@ def test_workers_with_other_code_are_refused(cluster, tmp_path, monkeypatch, whe
         finally:
             client.run(exec, set_fp.format("[]"))
     assert not CampaignStore(tmp_path / "mc").done()
+
+
+def test_lost_scheduler_is_one_line_and_keeps_the_stored_runs(tmp_path):
+    """The scheduler goes away mid-campaign: a one-line error (exit 2 from the CLI) saying
+    that the stored runs are kept, instead of Dask's cancelled futures."""
+    import dask
+
+    out = tmp_path / "mc"
+    with (
+        dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None,
+            worker_dashboard_address=None,
+            host="127.0.0.1", protocol="tcp://", silence_logs=50,
+        ) as c,
+    ):  # fmt: skip
+
+        def close() -> None:
+            while not _stored(out):
+                time.sleep(0.002)
+            c.close()
+
+        th = threading.Thread(target=close, daemon=True)
+        th.start()
+        with pytest.raises(InputError, match="lost the Dask scheduler.*stored runs are kept"):
+            runner.run_campaign(
+                _short(), "ekf-dpacf", 64, out, scheduler=c.scheduler_address,
+                console=_quiet(), chunk_size=2,
+            )  # fmt: skip
+        th.join()
+    assert 0 < len(_stored(out)) < 64

@@ -26,7 +26,7 @@ import signal
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
@@ -454,6 +454,12 @@ def _execute_dask(
                 ks = futures.pop(fut)
                 try:
                     fp, results = fut.result()
+                except CancelledError:  # not by us: the scheduler went away
+                    raise InputError(
+                        "lost the Dask scheduler (or it cancelled the runs); the stored runs "
+                        "are kept: run the same command again to resume",
+                        address,
+                    ) from None
                 except KilledWorker as exc:
                     raise RuntimeError(
                         f"Dask workers died computing runs {ks[0]}-{ks[-1]} ({exc}; out of "
