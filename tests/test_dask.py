@@ -149,8 +149,12 @@ def _kill_a_busy_worker(cluster, out: Path, pids: dict, stop: threading.Event, s
     ``seen`` gets the stored runs' mtimes just before and the keys of those chunks."""
     while not stop.is_set():
         if _stored(out):
-            for addr, ws in list(cluster.scheduler.workers.items()):
-                busy = [ts.key for ts in list(ws.processing)]
+            try:  # the scheduler's state, read from another thread: retry if it changed
+                workers = [(a, [ts.key for ts in ws.processing]) for a, ws in
+                           list(cluster.scheduler.workers.items())]  # fmt: skip
+            except RuntimeError:
+                continue
+            for addr, busy in workers:
                 if busy and addr in pids:
                     seen.update(stored=_stored(out), keys=set(busy))
                     os.kill(pids[addr], signal.SIGKILL)
@@ -274,9 +278,11 @@ def test_lost_scheduler_is_one_line_and_keeps_the_stored_runs(tmp_path):
     with (
         dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
         distributed.LocalCluster(
-            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None,
-            worker_dashboard_address=None,
-            host="127.0.0.1", protocol="tcp://", silence_logs=50,
+            n_workers=1, threads_per_worker=1, processes=False, host="127.0.0.1",
+            protocol="tcp://", silence_logs=50,
+            # its HTTP server (there even without a dashboard) on any port: the module's
+            # cluster has the default one
+            dashboard_address=":0", worker_dashboard_address=None,
         ) as c,
     ):  # fmt: skip
 
