@@ -284,3 +284,28 @@ def test_reproduce_chang2021_runs_its_cases_on_images(tmp_path):
     ):
         assert (tmp_path / fig).exists(), fig
     assert "chang2021" in _render(s)
+
+
+@pytest.mark.parametrize("paper", ["yu2019", "chang2021"])
+def test_reproduce_passes_the_dask_scheduler_to_its_campaigns(paper, tmp_path, monkeypatch):
+    """`reproduce --scheduler ADDRESS` runs the recipe's campaigns on the cluster."""
+    from tumblenav import papers
+    from tumblenav.campaign import runner
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(runner, "run_campaign", fake)
+    if paper == "yu2019":  # its tables come first: skip them
+        monkeypatch.setattr(yu2019, "table1", lambda: [])
+        monkeypatch.setattr(yu2019, "table2", lambda: [])
+        monkeypatch.setattr(yu2019, "table3_4", lambda: ([], []))
+    with pytest.raises(Stop):
+        papers.reproduce(paper, tmp_path, runs=1, scheduler="tcp://127.0.0.1:1")
+    assert seen["scheduler"] == "tcp://127.0.0.1:1"

@@ -324,6 +324,7 @@ def reproduce(
         int | None, typer.Option(min=1, help="runs per case (default: the paper's)")
     ] = None,
     workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
     output: OutOpt = Path("out/reproduce"),
 ) -> None:
     """Reproduce a paper's simulation section: figures and summary.json with its values."""
@@ -331,7 +332,7 @@ def reproduce(
     from tumblenav.papers.table import print_comparison
 
     try:
-        summary = rep(paper, output, runs=runs, workers=workers, console=err)
+        summary = rep(paper, output, runs=runs, workers=workers, scheduler=scheduler, console=err)
     except Interrupted as exc:
         inner = f" ({exc.kept})" if exc.kept else ""
         exc.kept = (

@@ -1,6 +1,7 @@
 """Monte Carlo campaigns: N seeded runs on local processes or a Dask cluster, resumable.
 
-Each finished run is stored at once by the process that computed it (see
+Each finished run is stored at once by the process that computed it (on a Dask cluster, by
+the command's own process as each chunk returns: the workers may share no filesystem; see
 :mod:`tumblenav.campaign.store`); running the same campaign again into the same folder keeps
 the finished runs and does only the missing ones. A run that raises is recorded as failed with
 its seed and error, and the campaign goes on.

@@ -29,21 +29,24 @@ def reproduce(
     runs: int | None = None,
     workers: int | None = None,
     console: Console | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
+    """One paper's recipe; its campaigns run on ``workers`` local processes, or on the Dask
+    cluster at ``scheduler`` (Kabir 2025's GP study stays local: it is not a campaign)."""
     if paper not in PAPERS:
         raise InputError(f"unknown paper '{paper}' (one of {', '.join(PAPERS)})")
     if paper == "hu2024":
         from tumblenav.papers import hu2024
 
-        return hu2024.reproduce(Path(output), runs=runs, workers=workers, console=console)
+        return hu2024.reproduce(Path(output), runs, workers, console, scheduler)
     if paper == "yu2019":
         from tumblenav.papers import yu2019
 
-        return yu2019.reproduce(Path(output), runs=runs, workers=workers, console=console)
+        return yu2019.reproduce(Path(output), runs, workers, console, scheduler)
     if paper == "kabir2025":
         from tumblenav.papers import kabir2025
 
-        return kabir2025.reproduce(Path(output), runs=runs, workers=workers, console=console)
+        return kabir2025.reproduce(Path(output), runs, workers, console, scheduler)
     from tumblenav.papers import chang2021
 
-    return chang2021.reproduce(Path(output), runs=runs, workers=workers, console=console)
+    return chang2021.reproduce(Path(output), runs, workers, console, scheduler=scheduler)

@@ -141,6 +141,7 @@ def run_case(
     workers: int | None = None,
     console: Console | None = None,
     base: Scenario | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """One case: a resumable campaign of ``runs`` runs of ekf-pose on rendered images, with
     Table 2's statistics and the per-axis figure (Figs. 17/19)."""
@@ -148,7 +149,9 @@ def run_case(
 
     sc = case_scenario(range_name, preset, base)
     folder = case_dir(output, range_name, preset)
-    s = runner.run_campaign(sc, ESTIMATOR, runs, folder, workers=workers, console=console)
+    s = runner.run_campaign(
+        sc, ESTIMATOR, runs, folder, workers=workers, scheduler=scheduler, console=console
+    )
     store = CampaignStore(folder)
     ks = sorted(k for k in store.done() if k < runs)
     t, comps = _components(store, ks)
@@ -246,6 +249,7 @@ def reproduce(
     console: Console | None = None,
     cases: tuple[tuple[str, str], ...] | None = None,
     bases: dict[str, Scenario] | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """The four cases (close and printed range, text and Table 1 camera) with ``runs`` runs each
     (default: the scenario's 100, as Table 2), the front-end figures, and summary.json."""
@@ -257,7 +261,7 @@ def reproduce(
     for range_name, preset in cases:
         base = bases.get(range_name)
         n = runs or (base or load_scenario(RANGES[range_name])).montecarlo.runs
-        out.append(run_case(range_name, preset, Path(output), n, workers, console, base))
+        out.append(run_case(range_name, preset, Path(output), n, workers, console, base, scheduler))
     summary = {
         "paper": "chang2021",
         "scenario": "chang2021 / chang2021_close",

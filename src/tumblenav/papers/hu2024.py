@@ -51,6 +51,7 @@ def reproduce(
     runs: int | None = None,
     workers: int | None = None,
     console: Console | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     base = load_scenario("hu2024")
     runs = runs or base.montecarlo.runs
@@ -64,6 +65,7 @@ def reproduce(
                 runs,
                 case_dir(output, noise, est),
                 workers,
+                scheduler,
                 console=console,
                 scenario=sc,
             )

@@ -257,7 +257,11 @@ def _filter_dir(output: Path, f: float, label: str) -> Path:
 
 
 def ukf_gp_study(
-    output: Path, runs: int, workers: int | None, console: Console | None
+    output: Path,
+    runs: int,
+    workers: int | None,
+    console: Console | None,
+    scheduler: str | None = None,
 ) -> list[dict[str, Any]]:
     cases = []
     for f in FREQS_HZ:
@@ -272,6 +276,7 @@ def ukf_gp_study(
                 runs,
                 _filter_dir(output, f, label),
                 workers,
+                scheduler,
                 console=console,
                 scenario=sc,
             )
@@ -299,11 +304,12 @@ def reproduce(
     runs: int | None = None,
     workers: int | None = None,
     console: Console | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     runs = runs or load_scenario("kabir2025").montecarlo.runs
     seed = load_scenario("kabir2025").montecarlo.seed
     gp_cases = gp_study(Path(output), runs, workers, console, seed)
-    filter_cases = ukf_gp_study(Path(output), runs, workers, console)
+    filter_cases = ukf_gp_study(Path(output), runs, workers, console, scheduler)
     _gp_figures(Path(output), gp_cases)
     _filter_figures(Path(output), runs)
     summary = {

@@ -222,6 +222,7 @@ def filter_cases(
     workers: int | None = None,
     console: Console | None = None,
     base: Scenario | None = None,
+    scheduler: str | None = None,
 ) -> list[dict[str, Any]]:
     """Figs. 8-16: ``runs`` seeded runs per case (the paper shows one) with and without the
     multi-solution fix at 1 cm noise, and with it at the printed 0.1 m; figures of run 0's
@@ -243,7 +244,9 @@ def filter_cases(
             }
         )
         folder = case_dir(output, noise, fix)
-        s = runner.run_campaign(sc, "ekf-depth", runs, folder, workers=workers, console=console)
+        s = runner.run_campaign(
+            sc, "ekf-depth", runs, folder, workers=workers, scheduler=scheduler, console=console
+        )
         t, errs, cons = runner.collect(CampaignStore(folder), runs)
         label = f"{noise:g} m noise, fix {'on' if fix else 'off'}"
         jump = None
@@ -282,6 +285,7 @@ def reproduce(
     runs: int | None = None,
     workers: int | None = None,
     console: Console | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Tables 1-4 (deterministic, seeded) and the filter cases with ``runs`` runs per case
     (default 1, as the paper's figures; ``--runs N`` gives N seeded runs per case and RMSE,
@@ -297,7 +301,7 @@ def reproduce(
         "table2": table2(),
         "table3": t3,
         "table4": t4,
-        "cases": filter_cases(Path(output), runs or 1, workers, console),
+        "cases": filter_cases(Path(output), runs or 1, workers, console, scheduler=scheduler),
     }
     io.write_json(summary, Path(output) / "summary.json")
     return summary
