@@ -542,9 +542,10 @@ def run_compare(
     if len(set(names)) != len(names):
         raise InputError(f"an estimator is named twice: {', '.join(names)}", "--estimator")
     refused = []
+    scenarios: dict[str, Scenario] = {}
     for name in names:
         try:
-            est_base.get_for(name, scenario)
+            scenarios[name] = _scenario_for(name, scenario)
         except InputError as exc:
             refused.append(f"{name} ({exc})")
     if refused:
@@ -560,8 +561,13 @@ def run_compare(
         before = len(CampaignStore(folder).done()) if folder.exists() else 0
         t0 = time.perf_counter()
         s = runner.run_campaign(
-            scenario, name, runs, folder, workers=workers, scheduler=scheduler, console=con
+            scenarios[name], name, runs, folder, workers=workers, scheduler=scheduler, console=con
         )
+        sc = scenarios[name]
+        if sc.sensor != scenario.sensor:  # its own measurements, from the same truth
+            s["sensor"] = f"own {sc.sensor.kind} sensor (other_sensors)"
+        if sc.estimator.tuning != scenario.estimator.tuning:
+            s["tuning"] = f"defaults (the scenario's tuning is for {scenario.estimator.name})"
         computed = s["runs"] + s.get("runs_failed", 0) - min(before, runs)
         s["warnings"] = assess(s)
         if computed > 0:
@@ -573,13 +579,40 @@ def run_compare(
         "runs": runs,
         "base_seed": scenario.montecarlo.seed,
         "window_s": list(scenario.window_s),
-        "same_measurements": True,
+        "same_measurements": all(scenarios[n].sensor == scenario.sensor for n in names),
         "cases": cases,
     }
     io.write_json(summary, output / "summary.json")
     if plots:
         compare_figures(output, scenario, names, runs)
     return summary
+
+
+def _scenario_for(name: str, scenario: Scenario) -> Scenario:
+    """The scenario estimator ``name`` runs on in a comparison: ``scenario``, or, when its
+    sensor gives what the estimator cannot use, the same scenario with the first of its
+    ``other_sensors`` the estimator runs on (the same truth and seeds: the truth does not
+    depend on the sensor); the first refusal otherwise. The scenario's ``estimator.tuning``
+    is for its own estimator: one that does not take those settings runs with its defaults."""
+    first: InputError | None = None
+    for sc in [scenario] + [
+        scenario.with_updates(sensor=alt.model_dump(), other_sensors=[])
+        for alt in scenario.other_sensors
+    ]:
+        for candidate in (sc, _with_default_tuning(sc, name)):
+            try:
+                est_base.get_for(name, candidate)
+                return candidate
+            except InputError as exc:
+                first = first or exc
+    assert first is not None
+    raise first
+
+
+def _with_default_tuning(scenario: Scenario, name: str) -> Scenario:
+    if name == scenario.estimator.name or not scenario.estimator.tuning:
+        return scenario
+    return scenario.with_updates(**{"estimator.tuning": {}})
 
 
 def compare_figures(folder: Path, scenario: Scenario, names: list[str], runs: int) -> None:
@@ -635,8 +668,13 @@ def print_comparison(summary: dict[str, Any], console: Console) -> None:
     w = summary.get("window_s") or [0.0, 0.0]
     console.print(
         f"[bold]{summary.get('scenario')}[/]: {summary.get('runs')} runs per estimator, the same "
-        f"runs (base seed {summary.get('base_seed')}) for each; steady-state window "
-        f"{w[0]:g}-{w[1]:g} s"
+        f"runs (base seed {summary.get('base_seed')}) for each"
+        + (
+            ""
+            if summary.get("same_measurements", True)
+            else " (the same truth; some estimators with their own sensor's measurements)"
+        )
+        + f"; steady-state window {w[0]:g}-{w[1]:g} s"
     )
     table = Table()
     table.add_column("quantity")
@@ -672,6 +710,10 @@ def print_comparison(summary: dict[str, Any], console: Console) -> None:
         ("runs diverged", "runs_diverged"),
     ):
         table.add_row(label, *[str(c.get(key, 0)) for c in cases])
+    if any(c.get("sensor") for c in cases):
+        table.add_row("measurements", *[c.get("sensor") or "the scenario's sensor" for c in cases])
+    if any(c.get("tuning") for c in cases):
+        table.add_row("settings", *[c.get("tuning") or "the scenario's tuning" for c in cases])
     table.add_row(
         "time per run (s)",
         *[f"{c['seconds_per_run']:.3g}" if c.get("seconds_per_run") else "(stored)" for c in cases],

@@ -447,6 +447,14 @@ class Scenario(_Model):
     chaser: ChaserConfig = ChaserConfig()
     target: TargetConfig
     sensor: Annotated[StereoSensorConfig | DepthSensorConfig, Field(discriminator="kind")]
+    other_sensors: list[
+        Annotated[StereoSensorConfig | DepthSensorConfig, Field(discriminator="kind")]
+    ] = Field(
+        [],
+        description="sensors of other kinds on the same chaser, for `compare`: an estimator "
+        "that cannot run on `sensor` gets its own measurements from the first of these it runs "
+        "on, simulated from the same truth with the same seeds",
+    )
     occlusion: OcclusionConfig = OcclusionConfig()
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
     estimator: EstimatorConfig = EstimatorConfig()
