@@ -288,3 +288,64 @@ def test_state_map_says_diverged_when_the_data_stop_fitting():
         if info.diverged:
             break
     assert info.diverged and k == 64 and wild == [1] * 5
+
+
+def test_increment_check_passes_the_truth_and_fails_a_wrong_rate():
+    """The independent divergence check (q-method increment of the raw tracks between two
+    epochs vs the filter's): the true attitudes pass its gate at every lag; attitudes that
+    rotate 2 deg/s too fast are flagged after 5 s (10 deg against the q-method's spread and a
+    1 deg floor)."""
+    from scipy.stats import chi2
+
+    from tumblenav.estimators.chang2021.slam import increment_check
+
+    sc = _scenario(40.0)
+    truth, meas = simulate(sc, 5)
+    tr = feature_tracks(meas)
+    R_TL = np.swapaxes(truth.R_LT, -1, -2)
+    q_TL = np.array([rot.matrix_to_quat(R) for R in R_TL])
+    P = np.tile(1e-8 * np.eye(3), (len(q_TL), 1, 1))
+    gate = chi2.ppf(0.9999, 3)
+    d2 = [
+        increment_check(tr, a, a + lag, q_TL[a], P[a], q_TL[a + lag], P[a + lag], 0.0)
+        for lag in (5, 25)
+        for a in range(10, 150, 7)
+    ]
+    assert all(d is not None and d < gate for d in d2)
+    bad = rot.quat_multiply(rot.exp_quat(np.radians([10.0, 0.0, 0.0])), q_TL[125])  # 2 deg/s
+    d_bad = increment_check(tr, 100, 125, q_TL[100], P[100], bad, P[125], np.radians(1.0))
+    assert d_bad is not None and d_bad > 2 * gate
+
+
+def test_state_map_divergence_check_says_diverged():
+    """The wiring of the increment check in the filter: an untouched run fails no check; the
+    same run with the last check epoch's attitude knocked 10 deg (as if the filter had since
+    turned 10 deg more than the target) fails the next check and, with check_fails 1, says
+    diverged there (the wild-epoch stop off: divergence_epochs huge)."""
+    from dataclasses import replace
+
+    from tumblenav.estimators.chang2021.slam import StateSteps
+    from tumblenav.estimators.chang2021.tuning import PoseTuning
+
+    sc = _scenario(40.0)
+    _, meas = simulate(sc, 4)
+    tun = PoseTuning(init_frames=20, divergence_epochs=10_000, check_lag_frames=10, check_fails=1)
+    steps = StateSteps(meas=meas, tun=tun, n_orbit=sc.chaser.orbit.mean_motion_rad_s)
+    b, _ = steps.initialise(19)
+    assert b is not None
+    fails = 0
+    for k in range(20, 80):
+        b, info = steps.update(steps.predict(b, float(meas.t[k])), k, False)
+        fails += info.skipped.get("failed_checks", 0)
+        assert not info.diverged
+        if k == 39:
+            b40 = b
+    assert fails == 0 and b40.memo.check[0] == 39
+    ka, qa, Pa = b40.memo.check
+    qa = rot.quat_multiply(rot.exp_quat(np.radians([0.0, 10.0, 0.0])), qa)
+    b = replace(b40, memo=replace(b40.memo, check=(ka, qa, Pa)))
+    for k in range(40, 80):
+        b, info = steps.update(steps.predict(b, float(meas.t[k])), k, False)
+        if info.diverged:
+            break
+    assert info.diverged and info.skipped.get("failed_checks") == 1 and k == 49

@@ -54,6 +54,7 @@ SKIP_REASONS = (
     "outlier_features",
     "gated_out",
     "wild_epoch",
+    "failed_checks",
 )
 
 

@@ -98,6 +98,8 @@ class MapMemo:
     s0: Array
     start: Start
     wild: int = 0
+    check: tuple[int, Array, Array] | None = None  # last check epoch, q_ThatL, P_att there
+    fails: int = 0  # failed divergence checks in a row
 
 
 def measurement_jacobian(q_ThatL: Array, s: Array) -> tuple[Array, Array]:
@@ -160,6 +162,51 @@ def _collinear(rho: Array) -> bool:
     """The points (m, 3) lie on a line (or a point): their scatter has two null directions."""
     ev = np.linalg.eigvalsh(np.cov(rho.T))
     return not ev[1] > 1e-6 * max(ev[2], 1e-300)
+
+
+def increment_check(
+    tracks: FeatureTracks,
+    a: int,
+    k: int,
+    q_a: Array,
+    P_a: Array,
+    q_k: Array,
+    P_k: Array,
+    floor_rad: float,
+    min_features: int = 3,
+) -> float | None:
+    """Squared Mahalanobis distance (3 dof) between the filter's attitude increment from epoch
+    ``a`` to ``k`` (``R_LThat(a) R_ThatL(k)``, from its estimates ``q_a``, ``q_k`` with
+    covariances ``P_a``, ``P_k``: left errors in That) and the one the raw tracks say:
+    Davenport's q-method (Chang 2021 eq. 27-28) on the features triangulated at both epochs,
+    about their weighted centroids (``rho_i(a) - c_a = R_LThat(a) R_ThatL(k) (rho_i(k) -
+    c_k)``), with its first-order covariance. No map and no filter state enter the measured
+    increment, so a filter whose rate or attitude has run away cannot explain it away. The
+    covariance is the sum of the q-method's, ``R_LThat(a) (P_a + P_k) R_ThatL(a)`` (the
+    filter's, without the cross-covariance of the two epochs: larger than the truth when they
+    are positively correlated, as a smoothly propagated attitude is) and ``floor_rad^2 I``.
+    None when fewer than ``min_features`` features span the interval or they are collinear."""
+    from tumblenav.estimators.chang2021.qmethod import q_method, q_method_covariance
+
+    c = np.flatnonzero(tracks.ok_p[a] & tracks.ok_p[k])
+    if len(c) < min_features:
+        return None
+    Sa, Sk = tracks.P[a, c], tracks.P[k, c]
+    w = 3.0 / (np.trace(Sa, axis1=-2, axis2=-1) + np.trace(Sk, axis1=-2, axis2=-1))
+    A = tracks.p[a, c] - w @ tracks.p[a, c] / w.sum()
+    B = tracks.p[k, c] - w @ tracks.p[k, c] / w.sum()
+    if _collinear(A):
+        return None
+    q, _ = q_method(A, B, w)  # A ~ R(q) B: R(q) = R_LThat(a) R_ThatL(k)
+    R_m = rot.quat_to_matrix(q)
+    P_m, _ = q_method_covariance(q, B, w, Sa + R_m @ Sk @ R_m.T)
+    R_LT_a = rot.quat_to_matrix(q_a).T
+    D_f = R_LT_a @ rot.quat_to_matrix(q_k)  # the filter's increment
+    S = P_m + R_LT_a @ (P_a + P_k) @ R_LT_a.T + floor_rad**2 * np.eye(3)
+    d = rot.log_map(R_m @ D_f.T)
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(d))):
+        return None
+    return float(d @ np.linalg.solve(S, d))
 
 
 @dataclass(frozen=True)
@@ -309,7 +356,7 @@ class StateSteps:
                 x,
                 P,
                 LAYOUT_POSE,
-                MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild),
+                MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, memo.check, memo.fails),
             ), StepInfo(skipped=skipped)
         else:
             D = P.shape[0]
@@ -361,9 +408,37 @@ class StateSteps:
             P.shape[0] and np.max(np.diag(P)) > _MAX_SIGMA**2
         ):
             return belief, StepInfo(diverged=True, skipped={"diverged": 1})
+        check, fails = memo.check, memo.fails
+        lag = tun.check_lag_frames
+        if lag and k >= memo.start.k:  # after the start window (not in the replay)
+            if check is not None and k - check[0] >= lag:
+                d2 = increment_check(
+                    tr,
+                    check[0],
+                    k,
+                    check[1],
+                    check[2],
+                    x[0:4],
+                    P[_A, _A],
+                    np.radians(tun.check_floor_deg),
+                    tun.min_features,
+                )
+                if d2 is not None:
+                    fails = fails + 1 if d2 > chi2.ppf(tun.check_gate_probability, 3) else 0
+                    if fails:
+                        skipped["failed_checks"] = 1
+                    if fails >= tun.check_fails:
+                        return belief, StepInfo(diverged=True, skipped=skipped | {"diverged": 1})
+                check = None
+            if check is None:
+                check = (k, x[0:4].copy(), P[_A, _A].copy())
         ids, s_map, P = self._augment(x, P, ids, s_map, k)
         return Belief(
-            belief.t, x, P, LAYOUT_POSE, MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild)
+            belief.t,
+            x,
+            P,
+            LAYOUT_POSE,
+            MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, check, fails),
         ), (StepInfo(nis=nis, dof=dof, rejected=rejected, skipped=skipped))
 
     def report(self, belief: Belief, k: int) -> Array:

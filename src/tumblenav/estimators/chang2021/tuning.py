@@ -60,6 +60,38 @@ class PoseTuning(BaseModel):
         "features pass the gate is 'wild' (no update); this many wild epochs in a row stop the "
         "run as diverged (2 s at 5 Hz)",
     )
+    check_lag_frames: int = Field(
+        25,
+        ge=0,
+        description="with map 'state': independent divergence check (tumblenav's; Chang 2021 "
+        "has none). Every check_lag_frames epochs the attitude increment between the last "
+        "check epoch and now is measured from the raw tracks alone (Davenport's q-method on "
+        "the features triangulated at both epochs, no map, no filter) and compared with the "
+        "filter's increment, gated by the sum of both covariances (plus check_floor_deg); "
+        "check_fails failed checks in a row stop the run as diverged. 0: off. 25 frames (5 s "
+        "at 5 Hz, ~25 deg of Chang's tumble): long enough for a rate error to show, short "
+        "enough that most tracks span it",
+    )
+    check_gate_probability: float = Field(
+        0.9999,
+        gt=0,
+        lt=1,
+        description="chi-square (3 dof) gate of the divergence check's increment residual",
+    )
+    check_fails: int = Field(
+        3,
+        ge=1,
+        description="failed divergence checks in a row that stop the run (15 s at the default "
+        "lag and 5 Hz)",
+    )
+    check_floor_deg: float = Field(
+        1.0,
+        ge=0,
+        description="1-sigma per axis (deg) added to the divergence check's covariance: the "
+        "image tracks' slow LK drift (correlated over the lag, which the white pixel noise of "
+        "the q-method covariance leaves out) and the q-method's nonlinearity; a filter off by "
+        "a few degrees over 5 s is diverged, not noisy",
+    )
     init_frames: int = Field(
         100,
         ge=3,
