@@ -94,9 +94,29 @@ def _quiet() -> Console:
     return Console(file=io.StringIO(), width=120)
 
 
+def _assert_close(a, b, path: str = "summary") -> None:
+    """Equal structure and strings; numbers equal to 1e-9 relative (NaN equal to NaN)."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), path
+        for k in a:
+            _assert_close(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) or isinstance(b, float):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-15, err_msg=path)
+    else:
+        assert a == b, path
+
+
 def test_same_runs_and_summary_as_the_local_runner(cluster, log, tmp_path):
     """The same chunks (2 runs each, over 2 worker processes) give the same arithmetic: every
-    stored array and the summary are equal to the local runner's, exactly."""
+    stored array and the summary equal the local runner's to 1e-9 (relative). Not to the bit:
+    the local workers fork from a parent that compiled the numba kernels, the Dask workers
+    (spawned) load or compile them themselves, and a freshly compiled kernel and a cached one
+    were measured to differ by ~1e-12 relative (a fresh clone: per-axis error means); in a
+    warm working tree the two are equal to the bit."""
     sc = _short()
     con = _quiet()
     d = runner.run_campaign(
@@ -107,7 +127,7 @@ def test_same_runs_and_summary_as_the_local_runner(cluster, log, tmp_path):
         sc, "ekf-dpacf", 6, tmp_path / "local", workers=2, console=_quiet(), chunk_size=2
     )
     assert d["runs"] == 6 and d["runs_failed"] == 0
-    assert d == loc
+    _assert_close(d, loc)
     assert log.computed() == {(0, 1): 1, (2, 3): 1, (4, 5): 1}
     for k in range(6):
         with (
@@ -116,7 +136,9 @@ def test_same_runs_and_summary_as_the_local_runner(cluster, log, tmp_path):
         ):
             assert a.files == b.files
             for name in a.files:
-                np.testing.assert_array_equal(a[name], b[name], err_msg=f"run {k} {name}")
+                np.testing.assert_allclose(
+                    a[name], b[name], rtol=1e-9, atol=1e-12, err_msg=f"run {k} {name}"
+                )
     # the local runner's progress bar, filled
     assert "hu2024 / ekf-dpacf" in con.file.getvalue() and "6/6" in con.file.getvalue()
 

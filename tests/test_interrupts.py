@@ -88,12 +88,22 @@ def _results(out: Path) -> dict:
 
 
 def _children(pid: int) -> list[int]:
-    """Child process ids (Linux /proc)."""
+    """Child process ids (Linux /proc), without the helpers a test run may have left: the
+    multiprocessing resource tracker or forkserver (a Dask LocalCluster's spawn context starts
+    one, and it outlives the cluster) is not a campaign worker."""
     out: list[int] = []
     for task in Path(f"/proc/{pid}/task").iterdir():
         text = (task / "children").read_text().split()
         out.extend(int(x) for x in text)
-    return out
+
+    def helper(kid: int) -> bool:
+        try:
+            cmd = Path(f"/proc/{kid}/cmdline").read_bytes()
+        except OSError:
+            return True  # gone already
+        return b"resource_tracker" in cmd or b"forkserver" in cmd
+
+    return [k for k in out if not helper(k)]
 
 
 def _inject(runs_dir: Path, after: int, fault: str, stop: threading.Event) -> None:
