@@ -27,8 +27,8 @@ class PoseTuning(BaseModel):
         "once with the current estimate (r_i = R_ThatL (rho_i - r_hat)); eq. 30 then "
         "reproduces the estimate it registered with and the filter takes it as news "
         "(circular: measured on chang2021_close point tracks, 10 runs, window 40-120 s, "
-        "position RMS per axis 0.31-0.46 m with NEES/dof 28; see the module docstring of "
-        "tumblenav.estimators.chang2021.slam)",
+        "position RMS per axis 0.36-0.57 m with NEES/dof 27, benchmarks/chang2021_estimator.py "
+        "with map 'registered'; see the module docstring of tumblenav.estimators.chang2021.slam)",
     )
     max_map_features: int = Field(
         50,
