@@ -1,10 +1,12 @@
 """ekf-pose on the point-sensor stereo tracks of chang2021_close (or another scenario): per-axis
 error mean and std in the steady-state window over seeded runs (Chang 2021 Table 2's form),
-RMSE and NEES/dof against its 95 % bounds.
+RMSE, NEES/dof against its 95 % bounds (and per block), runs flagged diverged.
 
-    .venv/bin/python benchmarks/chang2021_estimator.py [SCENARIO] [RUNS] [KEY=VALUE ...]
+    .venv/bin/python benchmarks/chang2021_estimator.py [--images] [SCENARIO] [RUNS] [KEY=VALUE ...]
 
-(KEY=VALUE: estimator.tuning keys, values as Python literals.)
+(KEY=VALUE: estimator.tuning keys, values as Python literals.) ``--images``: render the
+scenario's images and run the image front end (its default settings) instead of the point
+sensor (minutes per run: the renderer).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from tumblenav.estimators.base import get
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation.alignment import truth_state
 from tumblenav.evaluation.metrics import chi2_bounds
+from tumblenav.frontends.stages import prepare
+from tumblenav.measurements import STEREO_TRACKS
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
@@ -31,17 +35,21 @@ TABLE2_STD = {  # Chang 2021 Table 2 (100 runs), per axis
 
 
 def main() -> None:
-    name = sys.argv[1] if len(sys.argv) > 1 else "chang2021_close"
-    runs = int(sys.argv[2]) if len(sys.argv) > 2 else 5
-    tuning = {k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in sys.argv[3:])}
+    argv = [a for a in sys.argv[1:] if a != "--images"]
+    images = len(argv) < len(sys.argv) - 1
+    name = argv[0] if len(argv) > 0 else "chang2021_close"
+    runs = int(argv[1]) if len(argv) > 1 else 5
+    tuning = {k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in argv[2:])}
     sc = load_scenario(name)
-    if getattr(sc.sensor, "images", None) is not None:
+    if getattr(sc.sensor, "images", None) is not None and not images:
         sc = sc.with_updates(**{"sensor.images": None})  # the point sensor's tracks
     sc = sc.with_updates(**{"estimator.tuning": tuning})
     lo, hi = sc.steady_state_window_s or (0.75 * sc.duration_s, sc.duration_s)
-    errs, nees, secs, div = [], [], [], 0
+    errs, nees, blocks, secs, div = [], [], [], [], 0
     for seed in range(runs):
         truth, meas = simulate(sc, seed)
+        if images:
+            meas, _ = prepare(meas, (STEREO_TRACKS,))  # the image front end's tracks
         t0 = time.perf_counter()
         h = get("ekf-pose").run(context_from_scenario(sc), meas, np.random.default_rng(seed))
         secs.append(time.perf_counter() - t0)
@@ -50,6 +58,12 @@ def main() -> None:
         m = (h.t >= lo - 1e-9) & (h.t <= hi + 1e-9) & np.all(np.isfinite(dx), axis=1)
         errs.append(dx[m])
         nees.append(np.einsum("ni,nij,nj->n", dx[m], np.linalg.inv(h.P[m]), dx[m]))
+        blocks.append(
+            [
+                np.einsum("ni,nij,nj->n", dx[m][:, b], np.linalg.inv(h.P[m][:, b, b]), dx[m][:, b])
+                for b in (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12))
+            ]
+        )
     e = np.concatenate(errs)
     scale = {"attitude_deg": np.degrees(1), "rate_deg_s": np.degrees(1)}
     print(
@@ -70,6 +84,8 @@ def main() -> None:
         f"  NEES/dof {np.mean(np.concatenate(nees)) / dof:.2f} (95 % bounds for {runs} runs: "
         f"{lo95:.2f}-{hi95:.2f}); diverged runs: {div}"
     )
+    per_block = [np.mean(np.concatenate([b[i] for b in blocks])) / 3 for i in range(4)]
+    print("  NEES/3 per block (attitude, rate, position, velocity):", np.round(per_block, 2))
 
 
 if __name__ == "__main__":
