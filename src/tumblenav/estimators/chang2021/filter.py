@@ -94,15 +94,13 @@ class PoseMemo:
 
 
 @dataclass(frozen=True)
-class PoseSteps:
-    """ekf-pose on one run's stereo tracks, folded by :func:`tumblenav.estimators.base.fold`.
-    The belief's ``memo`` is a :class:`PoseMemo`; the fold's last memo tells the run where
-    the estimator's frame was defined (no mutable state on the steps)."""
+class TrackSteps:
+    """What both ekf-pose folds derive from one run's stereo tracks: the triangulated tracks,
+    the inertia the dynamics use, and the epoch that defines the estimator's frame."""
 
     meas: Any
     tun: PoseTuning
     n_orbit: float
-    layout: StateLayout = LAYOUT
 
     @functools.cached_property
     def tracks(self) -> FeatureTracks:
@@ -116,6 +114,15 @@ class PoseSteps:
     def k0(self) -> int | None:
         """That's defining epoch: the first epoch whose features fix a rotation."""
         return first_usable_epoch(self.tracks, self.tun, len(self.meas.t) - 1)
+
+
+@dataclass(frozen=True)
+class PoseSteps(TrackSteps):
+    """ekf-pose on one run's stereo tracks, folded by :func:`tumblenav.estimators.base.fold`.
+    The belief's ``memo`` is a :class:`PoseMemo`; the fold's last memo tells the run where
+    the estimator's frame was defined (no mutable state on the steps)."""
+
+    layout: StateLayout = LAYOUT
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         """Chang 2021 Sec. 4.1: the first ``init_frames`` frames from k0 start the filter

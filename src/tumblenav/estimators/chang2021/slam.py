@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,15 +58,14 @@ from tumblenav import rotations as rot
 from tumblenav.dynamics.integrators import discretise
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
-from tumblenav.estimators.chang2021.filter import rate_process_noise
-from tumblenav.estimators.chang2021.init import Start, first_usable_epoch, start
-from tumblenav.estimators.chang2021.measurements import FeatureTracks, feature_tracks
+from tumblenav.estimators.chang2021.filter import TrackSteps, rate_process_noise
+from tumblenav.estimators.chang2021.init import Start, start
+from tumblenav.estimators.chang2021.measurements import FeatureTracks
 from tumblenav.estimators.chang2021.model import (
     error_jacobian,
     process_noise_density,
     propagate_mean,
 )
-from tumblenav.estimators.chang2021.tuning import PoseTuning
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -210,22 +208,11 @@ def increment_check(
 
 
 @dataclass(frozen=True)
-class StateSteps:
+class StateSteps(TrackSteps):
     """ekf-pose with the feature map in the state, folded by
     :func:`tumblenav.estimators.base.fold` (module docstring)."""
 
-    meas: Any
-    tun: PoseTuning
-    n_orbit: float
     layout: StateLayout = LAYOUT_POSE
-
-    @functools.cached_property
-    def tracks(self) -> FeatureTracks:
-        return feature_tracks(self.meas)
-
-    @functools.cached_property
-    def inertia(self) -> Array:
-        return self.tun.inertia_matrix()
 
     @functools.cached_property
     def age(self) -> IntArray:
@@ -237,10 +224,6 @@ class StateSteps:
             run = np.where(ok[k], run + 1, 0)
             a[k] = run
         return a
-
-    @functools.cached_property
-    def k0(self) -> int | None:
-        return first_usable_epoch(self.tracks, self.tun, len(self.meas.t) - 1)
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         """The start (:func:`.init.start`, Chang's q-method and eq. 29 over the window), then
