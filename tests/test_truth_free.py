@@ -100,7 +100,8 @@ def test_same_measurements_other_truth_same_estimates(name):
 @pytest.mark.parametrize("name", sorted(_scenarios()))
 def test_estimate_from_a_measurement_folder_without_truth(name, tmp_path, capsys):
     """`tumblenav estimate --measurements DIR` for every estimator, from a folder with no
-    truth.nc: estimates.nc and a summary without an error section."""
+    truth.nc: estimates.nc, the estimates with their 3-sigma bands (estimates.png) and a
+    summary without an error section."""
     from tumblenav import io
     from tumblenav.cli import main
     from tumblenav.scenario import scenario_to_yaml
@@ -120,3 +121,4 @@ def test_estimate_from_a_measurement_folder_without_truth(name, tmp_path, capsys
     summary = io.read_json(out / "summary.json")
     assert "rmse" not in summary and "nees" not in summary
     assert (out / "estimates.nc").exists() and not list(out.glob("errors.png"))
+    assert (out / "estimates.png").stat().st_size > 10_000

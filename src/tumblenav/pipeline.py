@@ -292,6 +292,10 @@ def run_estimate(
                 occlusions=figures.occlusion_windows(scenario) if measurements is None else (),
                 window=scenario.window_s,
             )
+    elif plots:  # no truth (a user's own data): the estimates with their ±3σ
+        figures.plot_estimates(
+            hist, output / "estimates.png", f"{scenario.name} / {estimator}: estimates and ±3σ"
+        )
     if not np.isfinite(hist.x).any():
         summary["note"] = (
             f"{estimator} never started: its start condition was not met in this run "

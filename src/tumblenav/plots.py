@@ -863,3 +863,54 @@ def plot_tracked_frame(
     fig.suptitle(title or "tracked and matched features")
     fig.tight_layout()
     return save(fig, path)
+
+
+_EST_UNITS = {
+    "attitude": ("deg", np.degrees(1.0)),
+    "rate": ("deg/s", np.degrees(1.0)),
+    "position": ("m", 1.0),
+    "velocity": ("m/s", 1.0),
+    "offset": ("m", 1.0),
+    "features": ("m", 1.0),
+}
+
+
+def plot_estimates(history, path: str | Path, title: str = "", max_features: int = 3) -> Path:
+    """The estimates with their ±3σ bands, one panel per block (for runs without a truth: a
+    user's own data). The attitude is drawn as the rotation vector of the estimate relative to
+    its first value (deg), with the error state's 3σ; features: the first ``max_features``."""
+    from tumblenav import rotations as rot
+
+    lay = history.layout
+    t = np.asarray(history.t, float)
+    names = [b.name for b in lay.blocks]
+    fig, axes = plt.subplots(
+        len(names), 1, figsize=(11, 2.4 * len(names)), sharex=True, squeeze=False
+    )
+    started = np.isfinite(history.x).all(axis=1)
+    for ax, b in zip(axes[:, 0], lay.blocks, strict=True):
+        unit, scale = _EST_UNITS.get(b.name, ("-", 1.0))
+        x = history.x[:, lay.nom(b.name)]
+        sig = scale * history.sigma(b.name) if history.P_every == 1 else None
+        if b.kind == "quat":
+            first = x[np.argmax(started)] if started.any() else rot.IDENTITY
+            x = rot.log_quat(rot.quat_multiply(x, rot.quat_conjugate(first)))
+            label = f"{b.name} (rotation from its first estimate) [{unit}]"
+        else:
+            label = f"{b.name} [{unit}]"
+        x = scale * x
+        n = x.shape[1] if b.name != "features" else min(x.shape[1], 3 * max_features)
+        for i in range(n):
+            c = f"C{i % 3}" if b.name != "features" else f"C{i // 3}"
+            ax.plot(t, x[:, i], color=c, lw=1, label="xyz"[i % 3] if i < 3 else None)
+            if sig is not None:
+                ax.fill_between(
+                    t, x[:, i] - 3 * sig[:, i], x[:, i] + 3 * sig[:, i], color=c, alpha=0.15, lw=0
+                )
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize=8, ncol=3, title="shaded: ±3σ", title_fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(title or "estimates and ±3σ")
+    fig.tight_layout()
+    return save(fig, path)
