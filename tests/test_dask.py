@@ -220,15 +220,16 @@ def test_killed_worker_loses_no_finished_run_and_redoes_none(cluster, log, tmp_p
     assert {k: v for k, v in _stored(out).items() if k in seen["stored"]} == seen["stored"]
     assert writes == Counter(range(64))  # each run written once, by the parent
     # the chunks the dead worker held were rescheduled; none whose runs were all stored
-    # before the kill was computed again (which other chunks the scheduler had just handed
-    # the dead worker when it was read is a race: not asserted); every chunk's result was
-    # used once
+    # before the kill was computed again. Which other chunks were redone is a race, not
+    # asserted: the scheduler may just have handed the dead worker another chunk, or the
+    # worker may have finished one whose result died with it before the command fetched it
+    # (seen in a fresh clone: chunk 0-7 computed twice, stored once)
     restarted = {k for k, _, _ in log.events if log.started(k) > 1}
     assert restarted & seen["keys"]
-    for key in restarted:
-        first, last = _runs(key)
-        assert not all(k in seen["stored"] for k in range(first, last + 1)), key
-    assert log.computed() == {(f, f + 7): 1 for f in range(0, 64, 8)}
+    redone = {_runs(k) for k in restarted} | {r for r, c in log.computed().items() if c > 1}
+    for first, last in redone:
+        assert not all(k in seen["stored"] for k in range(first, last + 1)), (first, last)
+    assert set(log.computed()) == {(f, f + 7) for f in range(0, 64, 8)}
     assert not [p for p in out.rglob("*.tmp")]
 
 
