@@ -865,16 +865,6 @@ def plot_tracked_frame(
     return save(fig, path)
 
 
-_EST_UNITS = {
-    "attitude": ("deg", np.degrees(1.0)),
-    "rate": ("deg/s", np.degrees(1.0)),
-    "position": ("m", 1.0),
-    "velocity": ("m/s", 1.0),
-    "offset": ("m", 1.0),
-    "features": ("m", 1.0),
-}
-
-
 def plot_estimates(history, path: str | Path, title: str = "", max_features: int = 3) -> Path:
     """The estimates with their ±3σ bands, one panel per block (for runs without a truth: a
     user's own data). The attitude is drawn as the rotation vector of the estimate relative to
@@ -889,7 +879,8 @@ def plot_estimates(history, path: str | Path, title: str = "", max_features: int
     )
     started = np.isfinite(history.x).all(axis=1)
     for ax, b in zip(axes[:, 0], lay.blocks, strict=True):
-        unit, scale = _EST_UNITS.get(b.name, ("-", 1.0))
+        key, scale = metrics.QUANTITIES.get(b.name, (b.name, 1.0))  # summary units
+        unit = next((u for suf, u in _UNITS if key.endswith(suf) and len(key) > len(suf)), "-")
         x = history.x[:, lay.nom(b.name)]
         sig = scale * history.sigma(b.name) if history.P_every == 1 else None
         if b.kind == "quat":

@@ -211,11 +211,15 @@ def write_ply(path: Path, points: Array, binary: bool = False) -> Path:
         f"element vertex {len(p)}\nproperty double x\nproperty double y\nproperty double z\n"
         "end_header\n"
     ).encode("ascii")
+    return atomic_write(Path(path), lambda tmp: tmp.write_bytes(head + _xyz_body(p, binary)))
+
+
+def _xyz_body(p: Array, binary: bool) -> bytes:
+    """The points of a PLY or PCD body: little-endian doubles, or ``repr`` floats a line each
+    (exact round trip)."""
     if binary:
-        body = p.astype("<f8").tobytes()
-    else:
-        body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in p.tolist()).encode("ascii")
-    return atomic_write(Path(path), lambda tmp: tmp.write_bytes(head + body))
+        return p.astype("<f8").tobytes()
+    return "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in p.tolist()).encode("ascii")
 
 
 def write_pcd(path: Path, points: Array, binary: bool = False) -> Path:
@@ -228,11 +232,7 @@ def write_pcd(path: Path, points: Array, binary: bool = False) -> Path:
         f"SIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {len(p)}\nHEIGHT 1\n"
         f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(p)}\nDATA {'binary' if binary else 'ascii'}\n"
     ).encode("ascii")
-    if binary:
-        body = p.astype("<f8").tobytes()
-    else:
-        body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in p.tolist()).encode("ascii")
-    return atomic_write(Path(path), lambda tmp: tmp.write_bytes(head + body))
+    return atomic_write(Path(path), lambda tmp: tmp.write_bytes(head + _xyz_body(p, binary)))
 
 
 def read_index(path: Path, columns: tuple[str, ...]) -> tuple[Array, dict[str, NDArray]]:

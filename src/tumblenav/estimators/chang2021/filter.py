@@ -115,6 +115,20 @@ class TrackSteps:
         """That's defining epoch: the first epoch whose features fix a rotation."""
         return first_usable_epoch(self.tracks, self.tun, len(self.meas.t) - 1)
 
+    def start_at(self, k: int) -> tuple[Start | None, StepInfo]:
+        """Chang 2021 Sec. 4.1: the first ``init_frames`` frames from k0 start the filter
+        (:func:`tumblenav.estimators.chang2021.init.start`), at the window's last frame;
+        None and why before that (or when the window gives no start)."""
+        k0 = self.k0
+        if k0 is None or k < k0:
+            return None, StepInfo(skipped={"no_start_geometry": 1})
+        if k < k0 + self.tun.init_frames - 1:
+            return None, StepInfo(skipped={"initialising": 1})
+        s = start(self.tracks, self.meas.t, k0, k, self.tun, self.n_orbit)
+        if s is None:
+            return None, StepInfo(skipped={"initialising": 1})
+        return s, StepInfo()
+
 
 @dataclass(frozen=True)
 class PoseSteps(TrackSteps):
@@ -125,16 +139,10 @@ class PoseSteps(TrackSteps):
     layout: StateLayout = LAYOUT
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
-        """Chang 2021 Sec. 4.1: the first ``init_frames`` frames from k0 start the filter
-        (:func:`tumblenav.estimators.chang2021.init.start`), at the window's last frame."""
-        k0 = self.k0
-        if k0 is None or k < k0:
-            return None, StepInfo(skipped={"no_start_geometry": 1})
-        if k < k0 + self.tun.init_frames - 1:
-            return None, StepInfo(skipped={"initialising": 1})
-        s = start(self.tracks, self.meas.t, k0, k, self.tun, self.n_orbit)
+        """The start of :meth:`TrackSteps.start_at` as the first belief."""
+        s, info = self.start_at(k)
         if s is None:
-            return None, StepInfo(skipped={"initialising": 1})
+            return None, info
         return Belief(float(self.meas.t[k]), s.x, s.P, LAYOUT, PoseMemo(s.fmap, s)), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:

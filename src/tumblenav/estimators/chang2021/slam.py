@@ -59,7 +59,7 @@ from tumblenav.dynamics.integrators import discretise
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
 from tumblenav.estimators.chang2021.filter import TrackSteps, rate_process_noise
-from tumblenav.estimators.chang2021.init import Start, start
+from tumblenav.estimators.chang2021.init import Start
 from tumblenav.estimators.chang2021.measurements import FeatureTracks
 from tumblenav.estimators.chang2021.model import (
     error_jacobian,
@@ -228,14 +228,9 @@ class StateSteps(TrackSteps):
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         """The start (:func:`.init.start`, Chang's q-method and eq. 29 over the window), then
         the start epoch's features augmented from it."""
-        k0 = self.k0
-        if k0 is None or k < k0:
-            return None, StepInfo(skipped={"no_start_geometry": 1})
-        if k < k0 + self.tun.init_frames - 1:
-            return None, StepInfo(skipped={"initialising": 1})
-        s = start(self.tracks, self.meas.t, k0, k, self.tun, self.n_orbit)
+        s, info = self.start_at(k)
         if s is None:
-            return None, StepInfo(skipped={"initialising": 1})
+            return None, info
         x = s.x[:NX].copy()
         P = s.P[:NP, :NP].copy()
         # The start's CW fit treats the window's map origins as independent (they are not: the
