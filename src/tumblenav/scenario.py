@@ -420,11 +420,32 @@ class OcclusionConfig(_Model):
 
 
 class ProcessNoiseConfig(_Model):
-    """Process noise assumed by the estimators (the truth is torque-free and force-free
-    apart from gravity)."""
+    """The random disturbances of the target: what the estimators' process noise Q assumes
+    (their default Q is derived from it) and, with ``disturb_truth``, what the simulated truth
+    carries. Definitions: :mod:`tumblenav.dynamics.disturbances`. With ``disturb_truth: false``
+    the truth is torque-free and force-free apart from gravity, which a filter's Q of 0 would
+    describe: any Q > 0 then makes it conservative by design (NEES/dof below 1)."""
 
-    translational_m2_s4: float = Field(2e-6, ge=0, description="sigma_t^2 (Hu 2024 Sec. 5)")
-    rotational_rad2_s4: float = Field(2.5e-5, ge=0, description="sigma_r^2 (Hu 2024 Sec. 5)")
+    translational_m2_s4: float = Field(
+        2e-6,
+        ge=0,
+        description="spectral density (m^2/s^3) of a white random acceleration of the target's "
+        "mass centre per axis of L (sigma_t^2, Hu 2024 Sec. 5)",
+    )
+    rotational_rad2_s4: float = Field(
+        2.5e-5,
+        ge=0,
+        description="spectral density (rad^2/s^3) of the white random angular acceleration "
+        "about the target's axis of largest moment; the torque is isotropic, so about a "
+        "principal axis of moment I_i it is this x (I_max/I_i)^2 (sigma_r^2, Hu 2024 eq. 22, "
+        "Sec. 5)",
+    )
+    disturb_truth: bool = Field(
+        False,
+        description="the simulated truth carries these disturbances (a random torque and "
+        "force with these spectral densities), so that a filter whose Q equals them can be "
+        "judged by NEES; false: torque-free and force-free truth",
+    )
 
 
 class EstimatorConfig(_Model):

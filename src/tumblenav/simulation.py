@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from tumblenav import dynamics, sensors
 from tumblenav import rotations as rot
+from tumblenav.dynamics.disturbances import disturbed_attitude, translational_disturbance
 from tumblenav.errors import InputError
 from tumblenav.frames import lvlh_axes
 from tumblenav.measurements import (
@@ -237,14 +238,31 @@ def _orbit_truth(r0, v0, r0_L, v0_L, t_bytes, j2, mu):
     )
 
 
-def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Truth:
-    """Torque-free attitude (Euler + kinematics) and nonlinear relative orbit, both tight."""
+def simulate_truth(
+    scenario: Scenario,
+    rng_features: np.random.Generator,
+    rng_truth: np.random.Generator | None = None,
+) -> Truth:
+    """Torque-free attitude (Euler + kinematics) and nonlinear relative orbit, both tight;
+    with ``process_noise.disturb_truth`` the random torque and force of the scenario's process
+    noise are added (:mod:`tumblenav.dynamics.disturbances`), drawn from ``rng_truth`` (the
+    run's 'truth' stream; required then)."""
     t = scenario.times
     tg = scenario.target
     inertia = tg.inertia_matrix
-    q_TI, omega = _attitude_truth(
-        tuple(tg.q0_TI), tuple(tg.omega0_T_rad_s), tuple(map(tuple, inertia)), t.tobytes()
-    )
+    pn = scenario.process_noise
+    disturbed = pn.disturb_truth and (pn.rotational_rad2_s4 > 0 or pn.translational_m2_s4 > 0)
+    if disturbed and rng_truth is None:
+        raise ValueError("process_noise.disturb_truth needs the run's truth generator")
+    if disturbed and pn.rotational_rad2_s4 > 0:
+        assert rng_truth is not None
+        q_TI, omega = disturbed_attitude(
+            tg.q0_TI, tg.omega0_T_rad_s, inertia, t, pn.rotational_rad2_s4, rng_truth
+        )
+    else:
+        q_TI, omega = _attitude_truth(
+            tuple(tg.q0_TI), tuple(tg.omega0_T_rad_s), tuple(map(tuple, inertia)), t.tobytes()
+        )
     orbit = scenario.chaser.orbit
     n = len(t)
     if orbit is None:
@@ -273,6 +291,11 @@ def simulate_truth(scenario: Scenario, rng_features: np.random.Generator) -> Tru
         r_L, v_L = np.array(rel.r_L), np.array(rel.v_L)
         cr, cv = np.array(rel.chaser_r_I), np.array(rel.chaser_v_I)
         q_LI = rot.matrix_to_quat(np.swapaxes(lvlh_axes(cr, cv), -1, -2))
+    if disturbed and pn.translational_m2_s4 > 0:
+        assert rng_truth is not None
+        n_orbit = orbit.mean_motion_rad_s if orbit is not None else 0.0
+        dr, dv = translational_disturbance(n_orbit, t, pn.translational_m2_s4, rng_truth)
+        r_L, v_L = r_L + dr, v_L + dv
     if scenario.chaser.attitude == "target-pointing":
         R_LC = _target_pointing(scenario, r_L)
     else:
@@ -546,7 +569,7 @@ def simulate(
 ) -> tuple[Truth, Measurements]:
     """Truth and measurements of one run; ``seed`` defaults to the scenario's base seed."""
     streams = run_streams(scenario.montecarlo.seed if seed is None else seed)
-    truth = simulate_truth(scenario, streams["features"])
+    truth = simulate_truth(scenario, streams["features"], streams["truth"])
     if kind_of(scenario.sensor) == STEREO_IMAGES:
         return truth, simulate_images(scenario, truth, streams["sensor"])
     if scenario.sensor.kind == "stereo":
