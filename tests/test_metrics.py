@@ -152,3 +152,18 @@ def test_consistency_with_varying_dof_and_missing_values():
     assert abs(res["mean"] - 1.0) < 0.02
     none = metrics.consistency(values, np.zeros((runs, n)), t, (0.0, t[-1]))
     assert none == {"mean": None, "dof": 0, "bounds95": None, "inside_fraction": None}
+
+
+def test_branch_counts_and_warning():
+    """Runs per branch, 'nominal' first (also when no run is nominal), then by count; one
+    warning line only when some run is on a symmetric branch."""
+    counts = metrics.branch_counts(["nominal", "half turn z", "x<->y (y,-x,z)", "half turn z"])
+    assert counts == {"nominal": 1, "half turn z": 2, "x<->y (y,-x,z)": 1}
+    assert list(counts) == ["nominal", "half turn z", "x<->y (y,-x,z)"]
+    assert metrics.branch_counts(["half turn x"]) == {"nominal": 0, "half turn x": 1}
+    w = metrics.branch_warning(counts)
+    assert w is not None and w.startswith("3 of 4 runs converged to a symmetric equivalent")
+    assert "half turn z: 2, x<->y (y,-x,z): 1" in w and "errors measured in that frame" in w
+    assert metrics.branch_warning({"nominal": 20}) is None
+    assert metrics.branch_warning(None) is None
+    assert metrics.branch_warning({"nominal": 0, "half turn x": 1}).startswith("1 of 1 run ")

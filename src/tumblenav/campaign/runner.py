@@ -112,13 +112,15 @@ class _TrackTruth:
 
 def _evaluated(hist, truth, scenario: Scenario) -> tuple[Any, dict[str, Any]]:
     """A run's errors and the scalars stored with them: skipped updates by reason, per-axis
-    error moments over the steady-state window (``summary.json`` ``per_axis``)."""
+    error moments over the steady-state window (``summary.json`` ``per_axis``), the branch
+    (``summary.json`` ``branches``)."""
     if isinstance(truth, _TrackTruth):  # only estimators of features need the tracks' points
         t = truth
         need = "features" in hist.layout.names()
         truth = with_track_truth(t.truth, t.images, t.tracks) if need else t.truth
     r = evaluation.evaluate_run(hist, truth)
-    extras = {f"skipped_{n}": c for n, c in hist.skipped.items()}
+    extras: dict[str, Any] = {f"skipped_{n}": c for n, c in hist.skipped.items()}
+    extras["branch"] = r.branch
     return r, {**extras, **metrics.axis_moments(r, scenario.window_s)}
 
 
@@ -544,6 +546,13 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
         summary["runs_diverged"] = int(cons["diverged"].sum())
         summary["nees"] = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
         summary["nis"] = metrics.consistency(cons["nis"], cons["nis_dof"], t, window)
+        # runs per symmetric frame the truth was compared in (evaluation.alignment.align)
+        summary["branches"] = metrics.branch_counts(
+            str(x.get("branch", metrics.NOMINAL)) for x in cons["extras"]
+        )
+        note = metrics.branch_warning(summary["branches"])
+        if note:  # pipeline.assess writes the warnings again: it repeats this line
+            summary["warnings"] = [note]
     if failures:
         summary["failed"] = failures[:20]
     return summary

@@ -12,14 +12,21 @@ from typing import Any
 import numpy as np
 
 from tumblenav.estimators.base import EstimateHistory
-from tumblenav.evaluation.alignment import register_alignment, truth_state
+from tumblenav.evaluation.alignment import (
+    align,
+    register_alignment,
+    register_frame_alignment,
+    truth_state,
+)
 from tumblenav.evaluation.metrics import RunErrors, attitude_error_rad, run_errors
 
 __all__ = [
+    "align",
     "error_states",
     "evaluate_run",
     "nees_every",
     "register_alignment",
+    "register_frame_alignment",
     "truth_state",
 ]
 
@@ -38,9 +45,12 @@ def evaluate_run(history: EstimateHistory, truth: Any) -> RunErrors:
     campaigns alike: errors of every block in the estimator's own convention
     (:func:`truth_state`), NEES at about 1 Hz (:func:`nees_every`), the run's NIS, plus the
     DPACF frame's own attitude error (``dpacf_attitude_deg``, Hu 2024 Fig. 5) when the run
-    carries one (``info["dpacf_q_TI"]``)."""
-    x_true = truth_state(truth, history)
-    r = run_errors(history, x_true, nees_every(history.t))
+    carries one (``info["dpacf_q_TI"]``). The truth is expressed in the symmetric frame the
+    estimate is on, where the estimator declares its symmetries (:func:`align`); the run's
+    ``branch`` says which."""
+    a = align(truth, history)
+    x_true = a.x
+    r = run_errors(history, x_true, nees_every(history.t), branch=a.branch)
     q_dpacf = history.info.get("dpacf_q_TI")
     if q_dpacf is not None:
         q_true = x_true[:, history.layout.nom("attitude")]

@@ -8,16 +8,49 @@ Conventions:
 - ``hu2024``: Hu 2024's state in the run's DPACF principal frame T' (defined by the run's own
   photogrammetric frame G: ``info["template_G"]``, ``info["known"]``): :func:`canonical_frame`.
 - ``kabir2025``: Kabir 2025's ``[omega_TI_T, q_TI, k1, k2, p_T]`` in the scenario's T.
-- ``yu2019``: Yu 2019's state in the symmetric frame of the target model the filter started in
-  (``info["symmetries"]``).
+- ``yu2019``: Yu 2019's state in the scenario's T (the model symmetries: below).
+- ``chang2021``: ekf-pose's frame That, fixed at its first estimate (no symmetry).
 - anything else (a plugin): the generic blocks (attitude q_TI, rate omega_TI_T, position r_L,
   velocity v_L, features in T, offset in T) in the scenario's T; other blocks are NaN (not
-  evaluated). A plugin with its own convention registers it with :func:`register_alignment`.
+  evaluated). A plugin with its own convention registers it with :func:`register_alignment`
+  (or :func:`register_frame_alignment` to take part in the symmetries).
+
+Symmetries, handled here once for every estimator (:func:`align`). An estimate may be the
+truth seen in a *symmetric frame* ``T_G = G T`` of the convention's own frame (``G`` a proper
+rotation): physically the same motion, e.g. a principal frame with two axes relabelled, or the
+target model's own symmetry. The estimator says which frames are legitimate in
+``history.info``:
+
+- ``info["symmetries"]``: an explicit list of 3x3 rotations (Yu 2019: the model's rectangle
+  symmetries, :func:`tumblenav.frontends.depth_pose.model_symmetries`);
+- ``info["symmetry"]``: a named group, ``"principal_axes"`` (the 24 proper signed permutations
+  of the principal axes: a principal frame whose axes are relabelled, with the inertia
+  parameters relabelled with them) or ``"half_turns"`` (identity and the half turns about the
+  three axes: the sign choices of a principal frame);
+- nothing: the convention's frame only.
+
+The frame is chosen once per run, so that a later jump between symmetric frames counts as an
+error (``info["symmetry_reference"]``):
+
+- ``"first"`` (the default for an explicit list): the frame nearest the estimate at its first
+  epoch, i.e. the frame the filter started in (Yu 2019's rectangle fix at start);
+- ``"run"`` (the default for a named group): the frame the estimate lies nearest to, within
+  :data:`BRANCH_MAX_DEG`, at the most epochs, if that is at least :data:`BRANCH_MIN_FRACTION`
+  of its epochs and more than the convention's own frame; else the convention's own frame. A
+  filter that starts from an arbitrary frame and converges to a principal one (Kabir 2025's
+  triangulated start: ``q_TI = identity``) is on no branch at its first epoch.
+
+The truth is then expressed in ``T_G`` (attitude ``q(G) (x) q``, rate ``G omega``, features and
+offset ``G f``, inertia ``G I G^T`` in the convention's parameters), and the run records its
+*branch*: ``"nominal"`` for the convention's own frame, else a short name
+(:func:`branch_name`, e.g. ``"x<->y (y,x,-z)"``, ``"half turn z"``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,37 +58,221 @@ from numpy.typing import NDArray
 
 from tumblenav import rotations as rot
 from tumblenav.estimators.base import EstimateHistory, StateLayout
+from tumblenav.evaluation.metrics import NOMINAL
 from tumblenav.frontends.inertia import inertia_ratios, principal_frame
 
 Array = NDArray[np.float64]
 
-_ALIGNMENTS: dict[str, Callable[[Any, EstimateHistory], Array]] = {}
+# a convention's truth in the symmetric frame G of its own frame (None: its own frame)
+FrameFn = Callable[[Any, EstimateHistory, "Array | None"], Array]
+
+_ALIGNMENTS: dict[str, FrameFn] = {}
+_SYMMETRIC: set[str] = set()  # conventions whose function takes a symmetric frame G
+
+BRANCH_MAX_DEG = 45.0  # tumblenav default: an estimate within 45 deg of a symmetric frame is
+# on it (proper signed permutations are >= 90 deg apart, so at most one is that near)
+BRANCH_MIN_FRACTION = 0.25  # tumblenav default: a run is on a branch when its estimate lies
+# near that frame at >= 25% of its epochs (a random attitude is within 45 deg of a given frame
+# at 2.5% of epochs: (theta - sin theta) / pi)
 
 
 def register_alignment(
     convention: str,
 ) -> Callable[[Callable[[Any, EstimateHistory], Array]], Callable[[Any, EstimateHistory], Array]]:
     """Decorator: ``fn(truth, history) -> (n, nominal_dim)`` for histories whose
-    ``info["convention"]`` is ``convention``."""
+    ``info["convention"]`` is ``convention`` (its frame only: no symmetries)."""
 
     def deco(
         fn: Callable[[Any, EstimateHistory], Array],
     ) -> Callable[[Any, EstimateHistory], Array]:
-        _ALIGNMENTS[convention] = fn
+        _ALIGNMENTS[convention] = lambda truth, history, G: fn(truth, history)
+        _SYMMETRIC.discard(convention)
         return fn
 
     return deco
 
 
+def register_frame_alignment(convention: str) -> Callable[[FrameFn], FrameFn]:
+    """Decorator: ``fn(truth, history, G) -> (n, nominal_dim)``: the truth in the symmetric
+    frame ``T_G = G T`` of the convention's frame T (``G`` None: T itself), for histories
+    whose ``info["convention"]`` is ``convention``; such conventions take part in the
+    symmetries the history declares (:func:`align`)."""
+
+    def deco(fn: FrameFn) -> FrameFn:
+        _ALIGNMENTS[convention] = fn
+        _SYMMETRIC.add(convention)
+        return fn
+
+    return deco
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The truth in an estimator's convention and frame (``x``, (n, nominal_dim)), the
+    symmetric frame ``G`` it is expressed in (identity: the convention's own) and the
+    run's branch (``"nominal"`` or :func:`branch_name`)."""
+
+    x: Array
+    G: Array
+    branch: str
+
+
 def truth_state(truth: Any, history: EstimateHistory) -> Array:
     """The true nominal state (n, nominal_dim) in the history's convention and frame, so that
     ``history.layout.boxminus(truth_state, history.x)`` is the estimation error."""
-    fn = _ALIGNMENTS.get(history.info.get("convention", ""), generic_truth_state)
-    return fn(truth, history)
+    return align(truth, history).x
 
 
-def generic_truth_state(truth: Any, history: EstimateHistory) -> Array:
-    """The standard blocks in the scenario's T (see the module docstring); NaN elsewhere."""
+def align(truth: Any, history: EstimateHistory) -> Alignment:
+    """The truth in the history's convention and in the symmetric frame its estimate is on
+    (module docstring), with the run's branch."""
+    conv = history.info.get("convention", "")
+    fn = _ALIGNMENTS.get(conv)
+    symmetric = fn is None or conv in _SYMMETRIC
+    if fn is None:  # no convention, or one nobody registered: the generic blocks
+        fn = generic_truth_state
+    x0 = fn(truth, history, None)
+    eye = np.eye(3)
+    group = symmetry_group(history.info)
+    if not symmetric or "attitude" not in history.layout.names():
+        return Alignment(x0, eye, NOMINAL)
+    if len(group) == 1 and np.array_equal(group[0], eye):
+        return Alignment(x0, eye, NOMINAL)
+    rule = history.info.get("symmetry_reference") or (
+        "first" if history.info.get("symmetries") is not None else "run"
+    )
+    sq = history.layout.nom("attitude")
+    i = choose_frame(x0[:, sq], history.x, sq, group, rule)
+    if i is None or np.allclose(group[i], eye, atol=1e-9):
+        return Alignment(x0, eye, NOMINAL)
+    G = group[i]
+    return Alignment(fn(truth, history, G), G, branch_name(G))
+
+
+def symmetry_group(info: dict[str, Any]) -> list[Array]:
+    """The symmetric frames a history declares (module docstring): 3x3 rotations, the
+    identity alone when it declares none."""
+    explicit = info.get("symmetries")
+    if explicit is not None:
+        out = [np.asarray(S, dtype=float).reshape(3, 3) for S in explicit]
+        return out or [np.eye(3)]
+    name = info.get("symmetry")
+    if name is None:
+        return [np.eye(3)]
+    if name not in SYMMETRY_GROUPS:
+        raise ValueError(
+            f"history.info['symmetry'] = {name!r}: the known groups are "
+            f"{', '.join(sorted(SYMMETRY_GROUPS))} (or give info['symmetries'], a list of 3x3)"
+        )
+    return SYMMETRY_GROUPS[name]()
+
+
+def signed_permutations() -> list[Array]:
+    """The 24 proper signed permutation matrices (det +1), the identity first."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            G = np.zeros((3, 3))
+            G[np.arange(3), perm] = signs
+            if np.linalg.det(G) > 0:
+                out.append(G)
+    return out
+
+
+def half_turns() -> list[Array]:
+    """The identity and the half turns about x, y and z."""
+    return [np.diag(d) for d in ([1.0, 1, 1], [1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]
+
+
+SYMMETRY_GROUPS: dict[str, Callable[[], list[Array]]] = {
+    "principal_axes": signed_permutations,
+    "half_turns": half_turns,
+}
+
+
+def choose_frame(
+    q_true: Array, x_est: Array, sq: slice, group: Sequence[Array], rule: str
+) -> int | None:
+    """Index into ``group`` of the symmetric frame the estimate is on (module docstring);
+    ``q_true`` (n, 4): the true attitude in the convention's own frame; None: no estimate."""
+    if rule == "first":
+        first = np.flatnonzero(np.all(np.isfinite(x_est), axis=1))
+        if not len(first):
+            return None
+        k = first[0]
+        R_est = rot.quat_to_matrix(x_est[k, sq])
+        R_true = rot.quat_to_matrix(q_true[k])
+        scores = [np.sum(R_est * (S @ R_true)) for S in group]
+        return int(np.argmax(scores))  # the first of equal scores, as max() does
+    if rule != "run":
+        raise ValueError(f"history.info['symmetry_reference'] = {rule!r}: use 'first' or 'run'")
+    q_est = x_est[:, sq]
+    ok = np.all(np.isfinite(q_est), axis=1) & np.all(np.isfinite(q_true), axis=1)
+    if not ok.any():
+        return None
+    R_est = rot.quat_to_matrix(q_est[ok])  # (m, 3, 3)
+    R_true = rot.quat_to_matrix(q_true[ok])
+    Gs = np.stack(group)  # (g, 3, 3)
+    # trace(R_est^T G R_true) = 1 + 2 cos(angle between the estimate and the frame G)
+    tr = np.einsum("mij,gik,mkj->mg", R_est, Gs, R_true)
+    best = np.argmax(tr, axis=1)
+    near = tr[np.arange(len(tr)), best] >= 1.0 + 2.0 * np.cos(np.radians(BRANCH_MAX_DEG))
+    votes = np.bincount(best[near], minlength=len(group))
+    eye = [i for i, S in enumerate(group) if np.allclose(S, np.eye(3), atol=1e-9)]
+    own = votes[eye[0]] if eye else 0
+    i = int(np.argmax(votes))
+    if votes[i] <= own or votes[i] < BRANCH_MIN_FRACTION * ok.sum():
+        return eye[0] if eye else None
+    return i
+
+
+def branch_name(G: Array) -> str:
+    """A short name of the symmetric frame ``G``: ``"nominal"`` (identity), ``"half turn
+    z"``, ``"x<->y (y,x,-z)"`` (the estimate's axes in the truth's: its x is the truth's y,
+    its z the truth's -z), ``"x->y->z (y,z,x)"``; another rotation by its angle and axis."""
+    G = np.asarray(G, dtype=float)
+    if np.allclose(G, np.eye(3), atol=1e-9):
+        return NOMINAL
+    a = np.abs(G)
+    if np.allclose(np.sort(a, axis=1), [[0, 0, 1]] * 3, atol=1e-9) and np.allclose(
+        a.sum(0), 1, atol=1e-9
+    ):
+        perm = np.argmax(a, axis=1)
+        signs = np.sign(G[np.arange(3), perm])
+        axes = ",".join(("-" if s < 0 else "") + "xyz"[p] for s, p in zip(signs, perm, strict=True))
+        moved = [i for i in range(3) if perm[i] != i]
+        if not moved:
+            return f"half turn {'xyz'[int(np.flatnonzero(signs > 0)[0])]}"
+        if len(moved) == 2:
+            return f"{'xyz'[moved[0]]}<->{'xyz'[moved[1]]} ({axes})"
+        return f"x->{'xyz'[perm[0]]}->{'xyz'[perm[perm[0]]]} ({axes})"
+    rv = rot.log_map(G)
+    norm = float(np.linalg.norm(rv))
+    ang = float(np.degrees(norm))
+    ax = np.round(rv / max(norm, 1e-12), 2).tolist()
+    return f"rotation {ang:.0f} deg about {ax}"
+
+
+def _turned(x: Array, lay: StateLayout, G: Array) -> None:
+    """Turn the generic T-fixed blocks of ``x`` (n, nominal_dim) in place into ``T_G = G T``:
+    attitude ``q(G) (x) q_TI``, rate, features and offset ``G v``; other blocks as they are."""
+    names = lay.names()
+    if "attitude" in names:
+        sq = lay.nom("attitude")
+        x[:, sq] = rot.quat_multiply(rot.matrix_to_quat(G), x[:, sq])
+    for name in ("rate", "offset"):
+        if name in names:
+            s = lay.nom(name)
+            x[:, s] = x[:, s] @ G.T
+    if "features" in names:
+        s = lay.nom("features")
+        f = x[:, s].reshape(len(x), -1, 3)
+        x[:, s] = (f @ G.T).reshape(len(x), -1)
+
+
+def generic_truth_state(truth: Any, history: EstimateHistory, G: Array | None = None) -> Array:
+    """The standard blocks in the scenario's T (see the module docstring), or in ``G T``;
+    NaN elsewhere."""
     lay = history.layout
     x = np.full((len(truth.t), lay.nominal_dim), np.nan)
     known = {
@@ -70,6 +287,8 @@ def generic_truth_state(truth: Any, history: EstimateHistory) -> Array:
         v = known.get(b.name)
         if v is not None and v.shape[-1] == b.nominal_size:
             x[:, lay.nom(b.name)] = v
+    if G is not None:
+        _turned(x, lay, np.asarray(G, dtype=float))
     return x
 
 
@@ -123,51 +342,59 @@ def truth_in_frame(truth: Any, R_TcT: Array, lay: StateLayout) -> Array:
     return x
 
 
-@register_alignment("hu2024")
-def hu_truth_state(truth: Any, history: EstimateHistory) -> Array:
+@register_frame_alignment("hu2024")
+def hu_truth_state(truth: Any, history: EstimateHistory, G: Array | None = None) -> Array:
+    """The truth in the run's DPACF frame T' (:func:`canonical_frame`), or in ``G T'`` (the
+    inertia ratios of the turned moments: Hu 2024's p, relabelled with the axes)."""
     R = canonical_frame(history.info["template_G"], history.info["known"], truth)
+    if G is not None:
+        R = np.asarray(G, dtype=float) @ R
     return truth_in_frame(truth, R, history.layout)
 
 
 # --- Kabir 2025 ----------------------------------------------------------------------------
 
 
-def kabir_truth_state_of(truth: Any) -> Array:
+def kabir_truth_state_of(truth: Any, G: Array | None = None) -> Array:
     """The truth (n, 9 + 3N) in Kabir 2025's state: ``[omega_TI_T, q_TI, k1, k2, p]`` with
-    ``k1 = log(I1/I2)``, ``k2 = log(I3/I2)`` (eq. 7)."""
-    I = np.diag(np.asarray(truth.inertia_T, dtype=float))
+    ``k1 = log(I1/I2)``, ``k2 = log(I3/I2)`` (eq. 7); with ``G``, in the frame ``G T`` (the
+    moments relabelled with the axes: ``I_G = diag(G I G^T)``)."""
+    I_T = np.asarray(truth.inertia_T, dtype=float)
+    if G is not None:
+        G = np.asarray(G, dtype=float)
+        I_T = G @ I_T @ G.T
+    I = np.diag(I_T)
     n = len(truth.t)
     k = np.array([np.log(I[0] / I[1]), np.log(I[2] / I[1])])
-    f = np.asarray(truth.features_T, dtype=float).ravel()
-    return np.concatenate(
-        [truth.omega_TI_T, truth.q_TI, np.tile(k, (n, 1)), np.tile(f, (n, 1))], axis=1
-    )
+    f = np.asarray(truth.features_T, dtype=float)
+    w, q = truth.omega_TI_T, truth.q_TI
+    if G is not None:
+        w = w @ G.T
+        q = rot.quat_multiply(rot.matrix_to_quat(G), q)
+        f = f @ G.T
+    f = f.ravel()
+    return np.concatenate([w, q, np.tile(k, (n, 1)), np.tile(f, (n, 1))], axis=1)
 
 
-@register_alignment("kabir2025")
-def kabir_truth_state(truth: Any, history: EstimateHistory) -> Array:
-    return kabir_truth_state_of(truth)
+@register_frame_alignment("kabir2025")
+def kabir_truth_state(truth: Any, history: EstimateHistory, G: Array | None = None) -> Array:
+    return kabir_truth_state_of(truth, G)
 
 
 # --- Yu 2019 -------------------------------------------------------------------------------
 
 
-@register_alignment("yu2019")
-def yu_truth_state(truth: Any, history: EstimateHistory) -> Array:
-    """The truth in the estimator's frame. Rectangles alone fix the attitude only up to the
-    model's own symmetries (for the procedural satellite: half turns about its axes), so
-    the truth is expressed in the symmetric frame the filter started in (chosen once per
-    run, at the first estimate); later jumps between symmetric frames count as errors."""
+@register_frame_alignment("yu2019")
+def yu_truth_state(truth: Any, history: EstimateHistory, G: Array | None = None) -> Array:
+    """The truth in the estimator's frame, ``G T``: rectangles alone fix the attitude only
+    up to the model's own symmetries (for the procedural satellite: half turns about its
+    axes), which the estimator declares in ``info["symmetries"]``; :func:`align` picks the
+    symmetric frame the filter started in (at the first estimate; later jumps between
+    symmetric frames count as errors). Yu's inertia is the full matrix over ``I_xx``:
+    ``[I_yy, I_zz, I_xy, I_xz, I_yz] / I_xx`` of ``G I G^T``."""
     lay = history.layout
-    G = np.eye(3)
-    syms = history.info.get("symmetries") or [np.eye(3)]
+    G = np.eye(3) if G is None else np.asarray(G, dtype=float)
     sq = lay.nom("attitude")
-    first = np.flatnonzero(np.all(np.isfinite(history.x), axis=1))
-    if len(first):
-        k = first[0]
-        R_est = rot.quat_to_matrix(history.x[k, sq])
-        R_true = rot.quat_to_matrix(truth.q_TI[k])
-        G = max(syms, key=lambda S: np.sum(R_est * (S @ R_true)))
     x = np.zeros((len(truth.t), lay.nominal_dim))
     I = G @ truth.inertia_T @ G.T
     I = I / I[0, 0]

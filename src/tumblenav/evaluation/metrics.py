@@ -14,6 +14,8 @@ summary number is the RMS of that curve over the steady-state window.
 from __future__ import annotations
 
 import warnings
+from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,6 +26,8 @@ from tumblenav import rotations as rot
 from tumblenav.estimators.base import EstimateHistory
 
 Array = NDArray[np.float64]
+
+NOMINAL = "nominal"  # the branch of a run compared in its estimator's own frame
 
 QUANTITIES = {
     "attitude": ("attitude_deg", np.degrees(1.0)),
@@ -54,6 +58,9 @@ class RunErrors:
     # per-axis error components (n, 3) of the 3-vector quantities, in summary units (the
     # attitude's are the rotation-vector error's), for per-axis means and spreads
     components: dict[str, Array] = field(default_factory=dict)
+    # the symmetric frame the truth was expressed in (evaluation.alignment.align): "nominal"
+    # (the estimator's own frame) or a short name such as "x<->y (y,x,-z)"
+    branch: str = NOMINAL
 
 
 AXIS_QUANTITIES = ("attitude", "rate", "position", "velocity")
@@ -121,9 +128,12 @@ def error_magnitudes(dx: Array, lay) -> dict[str, Array]:
     return out
 
 
-def run_errors(history: EstimateHistory, x_true: Array, nees_every: int = 1) -> RunErrors:
-    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout.
-    The NEES is evaluated every ``nees_every`` epochs (NaN in between)."""
+def run_errors(
+    history: EstimateHistory, x_true: Array, nees_every: int = 1, branch: str = NOMINAL
+) -> RunErrors:
+    """Errors and NEES of one run; ``x_true`` is the truth in the estimator's state layout
+    (in the symmetric frame ``branch``). The NEES is evaluated every ``nees_every`` epochs
+    (NaN in between)."""
     lay = history.layout
     dx = lay.boxminus(x_true, history.x)  # (n, dim)
     e = np.full(len(dx), np.nan)
@@ -139,6 +149,7 @@ def run_errors(history: EstimateHistory, x_true: Array, nees_every: int = 1) -> 
         nis=history.nis,
         nis_dof=history.nis_dof,
         components=error_components(dx, lay),
+        branch=branch,
     )
 
 
@@ -224,3 +235,30 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
         "bounds95": [lo, hi],
         "inside_fraction": float(np.mean((finite >= lo) & (finite <= hi))),
     }
+
+
+def branch_counts(branches: Iterable[str]) -> dict[str, int]:
+    """Runs per branch (summary.json ``branches``): ``"nominal"`` first (0 if none), then
+    the symmetric frames by decreasing count."""
+    c = Counter(str(b) for b in branches)
+    out = {NOMINAL: c.pop(NOMINAL, 0)}
+    out.update(sorted(c.items(), key=lambda kv: (-kv[1], kv[0])))
+    return out
+
+
+def branch_warning(branches: dict[str, int] | None) -> str | None:
+    """One warning line when any run is on a symmetric branch (``branches`` as
+    :func:`branch_counts` gives it), else None."""
+    if not branches:
+        return None
+    other = {k: int(v) for k, v in branches.items() if k != NOMINAL and v}
+    if not other:
+        return None
+    k, n = sum(other.values()), sum(int(v) for v in branches.values())
+    which = ", ".join(f"{name}: {v}" for name, v in other.items())
+    run_s = "run" if n == 1 else "runs"
+    return (
+        f"{k} of {n} {run_s} converged to a symmetric equivalent of the truth ({which}): "
+        "errors measured in that frame (the estimate describes the same motion with the "
+        "axes relabelled or turned; see 'branches')"
+    )

@@ -79,7 +79,20 @@ def _summary_table(cases: list[dict]) -> str:
         if any(key in c for c in cases):
             cells = "".join(f"<td>{_num(c.get(key))}</td>" for c in cases)
             rows.append(f"<tr><td>{label}</td>{cells}</tr>")
+    if any(c.get("branches") for c in cases):
+        cells = "".join(f"<td>{_branches_cell(c.get('branches'))}</td>" for c in cases)
+        rows.append(f"<tr><td>runs per branch</td>{cells}</tr>")
     return f"<table><tr><th>quantity</th>{head}</tr>{''.join(rows)}</table>"
+
+
+def _branches_cell(branches: dict | None) -> str:
+    """Runs per branch (summary.json ``branches``): the runs compared in a symmetric frame
+    of the estimator's own (relabelled or turned axes) are marked."""
+    if not branches:
+        return "-"
+    parts = [f"{_e(name)}: {_num(n)}" for name, n in branches.items() if n or name == "nominal"]
+    other = any(n for name, n in branches.items() if name != "nominal")
+    return f'<span class="{"bad" if other else "ok"}">{", ".join(parts)}</span>'
 
 
 def _case_label(c: dict) -> str:
