@@ -29,6 +29,7 @@ from tumblenav.estimators.hu2024.model import (
     _FLIPS,
     CONSTRAIN_EVERY,
     MAX_RATE_RAD_S,
+    MAX_REINITS,
     _diverged,
     _neutral_state,
     _translation_discrete,
@@ -37,6 +38,7 @@ from tumblenav.estimators.hu2024.model import (
     core_Qc,
     layout,
     propagate_rotation,
+    recentre_unseen,
 )
 from tumblenav.estimators.hu2024.tuning import HuTuning, parse_tuning
 from tumblenav.estimators.hu2024.update import _update, _update_sequential
@@ -135,66 +137,129 @@ def run_filter(
     compiled_ok = covered and uniform
     if engine == "compiled" and not uniform:
         raise ValueError("the compiled engine needs a uniform time grid")
-    if engine != "numpy" and compiled_ok:
-        from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+    use_kernel = engine != "numpy" and compiled_ok
 
-        diverged = np.zeros(B, dtype=np.bool_)
-        R0 = np.nan_to_num(fe.cov_TI + (att_inflation - 1.0) * fe.cov_frame)
-        Pht, Qt = _translation_discrete(n_orbit, s_t2, dt_nom)  # uniform grid: one dt
+    def run_engine(idx: NDArray[np.intp], k0: NDArray[np.int64], x0: Array, P0: Array) -> dict:
+        """Runs ``idx`` from the starts ``k0``, ``x0``, ``P0`` (one per run of ``idx``)."""
+        m = len(idx)
+        r: dict[str, Any] = {
+            "x": np.full((m, n, lay.nominal_dim), np.nan),
+            "P": np.full((m, -(-n // p_every), d, d), np.nan),
+            "nis": np.full((m, n), np.nan),
+            "nis_dof": np.zeros((m, n)),
+            "rejected": np.zeros(m, dtype=np.int64),
+            "diverged": np.zeros(m, dtype=np.bool_),
+            "flips": np.zeros(m, dtype=np.int64),
+        }
+        assert fe.R_LI is not None  # set by frontend()
 
-        # cov_L as it is (no NaN-free copy of the largest array): the kernel reads it only where
-        # ``usable``, which the triangulation sets only for finite covariances
-        _hu_kernel.run_filter_kernel(
-            t, fe.p_L, np.ascontiguousarray(fe.cov_L), fe.usable, fe.known_at, fe.q_TI, R0, fe.R_LI,
-            init.k0, init.x0, init.P0, use_dpacf, bool(tun.first_estimates_jacobian),
-            tun.attitude_meas_every, tun.flip_epochs, CONSTRAIN_EVERY, tun.constraint_curvature,
-            MAX_RATE_RAD_S,
-            s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
-            _FLIPS, rot.matrix_to_quat(_FLIPS), p_every, _neutral_state(lay), out_x, out_P,
-            nis, nis_dof, diverged, flips, consider, fe.R_GT, np.nan_to_num(fe.cov_frame), p_turn, mu_turn,
-            S_turn, refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
-        )  # fmt: skip
-        return pack()
-    # the reference engine: each run folded through Hu's steps (tumblenav.estimators.base.fold)
-    for b in range(B):
-        steps = HuSteps(
-            fe=_run_view(fe, b),
-            tun=tun,
-            use_dpacf=use_dpacf,
-            layout=lay,
-            k0=int(init.k0[b]),
-            x0=init.x0[b],
-            P0=init.P0[b],
-            n_orbit=n_orbit,
-            s_r2=s_r2,
-            s_t2=s_t2,
-            consider=consider,
-            refine=refine,
-            iter_var=iter_var,
-            gate=float(gate),
-            att_inflation=att_inflation,
-            p_turn=p_turn[b : b + 1],
-            mu_turn=mu_turn[b : b + 1],
-            S_turn=S_turn[b : b + 1],
-        )
-        r = fold(steps, t, p_every)
-        out_x[b], out_P[b], nis[b], nis_dof[b] = r.x, r.P, r.nis, r.nis_dof
-        rejected[b], diverged[b] = r.rejected, r.diverged
-        flips[b] = r.memo.flips if r.memo is not None else 0
-    return pack()
+        def sel(a: Any) -> Any:  # no copy of the largest arrays for the whole batch
+            return a if m == B else a[idx]
+
+        if use_kernel:
+            from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+
+            R0 = np.nan_to_num(sel(fe.cov_TI) + (att_inflation - 1.0) * sel(fe.cov_frame))
+            Pht, Qt = _translation_discrete(n_orbit, s_t2, dt_nom)  # uniform grid: one dt
+            _hu_kernel.run_filter_kernel(
+                t, sel(fe.p_L), np.ascontiguousarray(sel(fe.cov_L)), sel(fe.usable),
+                sel(fe.known_at), sel(fe.q_TI), R0, sel(fe.R_LI), k0, x0, P0, use_dpacf,
+                bool(tun.first_estimates_jacobian), tun.attitude_meas_every, tun.flip_epochs,
+                CONSTRAIN_EVERY, tun.constraint_curvature, MAX_RATE_RAD_S,
+                s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
+                _FLIPS, rot.matrix_to_quat(_FLIPS), p_every, _neutral_state(lay), r["x"],
+                r["P"], r["nis"], r["nis_dof"], r["diverged"], r["flips"], consider,
+                sel(fe.R_GT), np.nan_to_num(sel(fe.cov_frame)), sel(p_turn), sel(mu_turn),
+                sel(S_turn), refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
+            )  # fmt: skip
+            return r
+        # the reference engine: each run folded through Hu's steps (base.fold)
+        for j, b in enumerate(idx):
+            steps = HuSteps(
+                fe=_run_view(fe, b),
+                tun=tun,
+                use_dpacf=use_dpacf,
+                layout=lay,
+                k0=int(k0[j]),
+                x0=x0[j],
+                P0=P0[j],
+                n_orbit=n_orbit,
+                s_r2=s_r2,
+                s_t2=s_t2,
+                consider=consider,
+                refine=refine,
+                iter_var=iter_var,
+                gate=float(gate),
+                att_inflation=att_inflation,
+                p_turn=p_turn[b : b + 1],
+                mu_turn=mu_turn[b : b + 1],
+                S_turn=S_turn[b : b + 1],
+            )
+            f = fold(steps, t, p_every)
+            r["x"][j], r["P"][j], r["nis"][j], r["nis_dof"][j] = f.x, f.P, f.nis, f.nis_dof
+            r["rejected"][j], r["diverged"][j] = f.rejected, f.diverged
+            r["flips"][j] = f.memo.flips if f.memo is not None else 0
+        return r
+
+    allr = np.arange(B)
+    r = run_engine(allr, init.k0, init.x0, init.P0)
+    out_x[:], out_P[:], nis[:], nis_dof[:] = r["x"], r["P"], r["nis"], r["nis_dof"]
+    rejected[:], diverged[:], flips[:] = r["rejected"], r["diverged"], r["flips"]
+    # A run that lost track (its state left every physical range: _diverged) is started
+    # again from the measurements after that epoch, as at the start (tumblenav default;
+    # ekf-baseline after a long occlusion), at most MAX_REINITS times; counted in
+    # ``reinitialised`` and the epochs of each restart in ``reinit_epochs``
+    reinit_at: list[list[int]] = [[] for _ in range(B)]
+    for _ in range(MAX_REINITS):
+        lost = np.flatnonzero(diverged)
+        if not len(lost):
+            break
+        fin = np.isfinite(out_x[lost, :, 0])
+        k_div = np.where(fin.any(axis=1), n - np.argmax(fin[:, ::-1], axis=1), 0)
+        sub = _subset(fe, lost)
+        re = _initial_state(sub, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider,
+                            refine=refine, not_before=k_div)  # fmt: skip
+        go = re.k0 >= 0
+        if not go.any():
+            break
+        idx, k0r = lost[go], re.k0[go]
+        r = run_engine(idx, k0r, re.x0[go], re.P0[go])
+        for j, b in enumerate(idx):
+            k, kp = int(k0r[j]), -(-int(k0r[j]) // p_every)
+            out_x[b, k:], nis[b, k:], nis_dof[b, k:] = (
+                r["x"][j, k:],
+                r["nis"][j, k:],
+                r["nis_dof"][j, k:],
+            )
+            out_P[b, kp:] = r["P"][j, kp:]
+            rejected[b] += r["rejected"][j]
+            flips[b] += r["flips"][j]
+            diverged[b] = r["diverged"][j]
+            reinit_at[b].append(k)
+    out = pack()
+    out["reinit_epochs"] = reinit_at
+    return out
 
 
-def _run_view(fe: stereo_points.PointsFrontEnd, b: int) -> stereo_points.PointsFrontEnd:
-    """Run ``b`` of a batched front end, as a batch of one (the arrays keep their run axis)."""
+def _subset(
+    fe: stereo_points.PointsFrontEnd, idx: NDArray[np.intp]
+) -> stereo_points.PointsFrontEnd:
+    """The runs ``idx`` of a batched front end (the arrays keep their run axis)."""
     B = fe.usable.shape[0]
     upd: dict[str, Any] = {}
     for f in dataclasses.fields(fe):
         v = getattr(fe, f.name)
         if f.name != "t" and isinstance(v, np.ndarray) and v.ndim and v.shape[0] == B:
-            upd[f.name] = v[b : b + 1]
-    upd["skipped"] = {k: np.asarray(v)[b : b + 1] for k, v in fe.skipped.items()}
-    view = dataclasses.replace(fe, **upd)  # R_LI (B,n,3,3) among the fields cut to run b
-    return view
+            upd[f.name] = v[idx]
+    upd["skipped"] = {k: np.asarray(v)[idx] for k, v in fe.skipped.items()}
+    if fe.template_history is not None:
+        upd["template_history"] = [(k_v[idx], tm[idx]) for k_v, tm in fe.template_history]
+    return dataclasses.replace(fe, **upd)
+
+
+def _run_view(fe: stereo_points.PointsFrontEnd, b: int) -> stereo_points.PointsFrontEnd:
+    """Run ``b`` of a batched front end, as a batch of one (the arrays keep their run axis)."""
+    return _subset(fe, np.array([b]))
 
 
 @dataclass(frozen=True)
@@ -296,18 +361,23 @@ class HuSteps:
             x, P, votes = _follow_dpacf_branch(
                 x, P, fe.q_TI[:, k], upd, lay, votes, tun.flip_epochs, flips, f_first
             )
+        # features first seen now (not at the start): their prior mean to the sighting
+        N = f_first.shape[1]
+        at_start = start[:, None] & fe.known_at[:, k]
+        late = active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0]) & ~at_start
+        if late.any():
+            assert fe.R_LI is not None
+            x = recentre_unseen(x, fe.R_LI[:, k], np.nan_to_num(fe.p_L[:, k]), late, lay)
+        # the features' first estimates (FEJ linearisation points; kept in every mode,
+        # they also mark the features seen so far)
+        fnow = x[:, lay.nom("features")].reshape(1, N, 3)
+        fresh = at_start | (active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0]))
+        f_first = np.where(fresh[..., None], fnow, f_first)
         if np.isfinite(self.gate):
             x, P, nis_k, dof_k, rej = _update(
                 x, P, fe, k, lay, use_att, self.gate, self.att_inflation, upd
             )
         else:
-            if tun.first_estimates_jacobian:
-                N = f_first.shape[1]
-                fnow = x[:, lay.nom("features")].reshape(1, N, 3)
-                fresh = (start[:, None] & fe.known_at[:, k]) | (
-                    active[:, None] & fe.usable[:, k] & ~np.isfinite(f_first[..., 0])
-                )
-                f_first = np.where(fresh[..., None], fnow, f_first)
             f_l = f_first if tun.first_estimates_jacobian else None
             x_pr, P_pr = x, P
             x, P, nis_k, dof_k, rej = _update_sequential(
@@ -402,6 +472,8 @@ def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
         skipped["gated_out"] = int(res["rejected"][b])
         skipped["diverged"] = int(res["diverged"][b])
         skipped["frame_flips"] = int(res["frame_flips"][b])
+        reinit = res.get("reinit_epochs", [[]] * len(res["x"]))[b]
+        skipped["reinitialised"] = len(reinit)
         k0 = res["k0"][b]
         out.append(
             EstimateHistory(
@@ -419,6 +491,8 @@ def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
                     "known": fe.known[b],
                     "start_time_s": float(res["t"][k0]) if k0 >= 0 else None,
                     "dpacf_q_TI": res["dpacf_q_TI"][b],
+                    # restarts after the run lost track (run_filter): their times
+                    "reinit_times_s": [float(res["t"][k]) for k in reinit],
                     "start_condition": (
                         "(the DPACF frame never reached a 1-sigma below max_dpacf_sigma_rad = "
                         f"{max_sigma} rad; epochs with >= 3 triangulated features: "

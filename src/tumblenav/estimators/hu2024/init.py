@@ -219,10 +219,16 @@ def _initial_state(
     n_orbit: float = 0.0,
     frame_in_P0: bool = True,
     refine: bool = False,
+    not_before: NDArray[np.int64] | None = None,
 ) -> _Init:
+    """The start of each run: its epoch ``k0`` (the first where the gates hold; with
+    ``not_before`` (B,), no earlier than that: a re-initialisation after a run lost track,
+    from that epoch's measurements as at the start), the state and its covariance."""
     B, n, N = fe.usable.shape
     ready = np.all(np.isfinite(fe.q_TI), axis=-1) & np.all(np.isfinite(fe.omega_G), axis=-1)
     ready &= fe.usable.sum(axis=-1) >= 3  # fe: the filter's view (filter_view), gated frames
+    if not_before is not None:
+        ready &= np.arange(n)[None, :] >= np.asarray(not_before)[:, None]
     if tun.max_ratio_sigma is not None:  # both estimators, so that they start together
         var_p = np.nan_to_num(np.diagonal(fe.cov_ratios, axis1=-2, axis2=-1), nan=np.inf)
         ratios_ok = np.sqrt(var_p.max(axis=-1)) < tun.max_ratio_sigma

@@ -597,6 +597,20 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
+def _recentre(x, p, R_LI, i):
+    """``model.recentre_unseen`` for feature ``i`` of one run: ``f_i = R_LT^T (p - r)``."""
+    Rq = np.empty((3, 3))
+    quat_to_matrix(x[_NQ : _NQ + 4], Rq)
+    R_LT = _mm(R_LI, Rq.T.copy())
+    fo = _NF + 3 * i
+    for a in range(3):
+        s = 0.0
+        for c in range(3):
+            s += R_LT[c, a] * (p[c] - x[_NR + c])
+        x[fo + a] = s
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def run_filter_kernel(
     t,
     p_L,
@@ -706,13 +720,16 @@ def run_filter_kernel(
                     if turned:
                         flip_count[b] += 1
                 use_att = use_att and att_update
-                if fej:
-                    for i in range(N):
-                        fresh = (start and known_at[b, k, i]) or (
-                            usable[b, k, i] and not np.isfinite(f_first[i, 0])
-                        )
-                        if fresh:
-                            f_first[i] = x[_NF + 3 * i : _NF + 3 * i + 3]
+                # first estimates (FEJ points; kept in every mode: they mark the features
+                # seen so far); a feature first seen after the start has its prior mean
+                # moved to the sighting first (model.recentre_unseen)
+                for i in range(N):
+                    at_start = start and known_at[b, k, i]
+                    fresh = at_start or (usable[b, k, i] and not np.isfinite(f_first[i, 0]))
+                    if fresh:
+                        if not at_start:
+                            _recentre(x, p_L[b, k, i], R_LI[b, k], i)
+                        f_first[i] = x[_NF + 3 * i : _NF + 3 * i + 3]
                 nis_k, dof_k = 0.0, 0
                 if upd:
                     # iterated update when the prior attitude is poorly known (after a gap):

@@ -130,9 +130,38 @@ def feature_measurement(
     return y, H
 
 
+def recentre_unseen(x: Array, R_LI: Array, p_L: Array, fresh: Array, lay: StateLayout) -> Array:
+    """The prior mean of each feature in ``fresh`` (…,N) moved to its first sighting,
+    ``f_i = R_LT^T (p_L,i - r)`` (the inverse of Hu 2024 eq. 32 at the prior), so that its
+    first update and its first-estimates Jacobian (``R_LT [f_i x]``) are linearised there
+    and not at the placeholder 0 of a feature not seen at the start (tumblenav default).
+
+    Only for features whose prior is still the uninformative one of the start
+    (``p0_unseen_feature_m``, uncorrelated with the rest of the state): moving the mean of a
+    3 m prior by its first sighting changes the information by a fraction (measurement /
+    prior variance) of order 1e-5, and the update then carries the attitude's share of the
+    feature's error (``[f x] dtheta``) into its covariance. With the old placeholder the
+    Jacobian of such a feature stayed ``R_LT [0 x] = 0`` for good (first estimates), and
+    under self-occlusion, where most features appear after the start, the filter locked
+    onto a wrong answer with confidence."""
+    sf = lay.nom("features")
+    q = x[..., lay.nom("attitude")]
+    r = x[..., lay.nom("position")]
+    R_LT = R_LI @ np.swapaxes(rot.quat_to_matrix(q), -1, -2)
+    f_new = np.einsum("...ji,...kj->...ki", R_LT, p_L - r[..., None, :])  # R_LT^T (p - r)
+    f = x[..., sf].reshape(x.shape[:-1] + (-1, 3))
+    f = np.where(fresh[..., None], f_new, f)
+    out = x.copy()
+    out[..., sf] = f.reshape(x.shape[:-1] + (-1,))
+    return out
+
+
 _FLIPS = np.array(
     [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
 )
+
+
+MAX_REINITS = 20  # restarts of a run that lost track (filter.run_filter), at most
 
 
 def _diverged(x: Array, P: Array, lay: StateLayout) -> NDArray[np.bool_]:
