@@ -93,3 +93,18 @@ def test_baseline_restarts_after_a_long_occlusion():
     h = hu.histories(res, s)[0]
     assert h.skipped["reinitialised"] == len(res["reinit_epochs"][0])
     assert h.info["reinit_times_s"][0] >= 90.0
+
+
+def test_nis_alarm_flags_innovations_that_do_not_fit():
+    from tumblenav.estimators.hu2024.filter import nis_alarm
+
+    rng = np.random.default_rng(5)
+    t = np.arange(2000) * 0.1
+    dof = np.full(2000, 12)
+    nis = rng.chisquare(12, size=2000)
+    assert nis_alarm(t, nis, dof).sum() == 0  # honest innovations: no alarm
+    nis[1000:1200] *= 3.0  # the filter lost track for 20 s
+    a = nis_alarm(t, nis, dof)
+    assert a[1050:1200].all() and not a[:1000].any() and not a[1300:].any()
+    dof[:10] = 0  # no update: no window, no alarm
+    assert not nis_alarm(t, np.full(2000, np.nan), np.zeros(2000)).any()

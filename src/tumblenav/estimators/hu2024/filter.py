@@ -462,6 +462,24 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
 ENGINE: Literal["auto", "numpy", "compiled"] = "auto"  # default of run_filter(engine=None)
 
 
+NIS_WINDOW_S = 10.0  # the lost-track test's window (nis_alarm)
+
+
+def nis_alarm(t: Array, nis: Array, dof: Array, window_s: float = NIS_WINDOW_S) -> NDArray:
+    """Epochs at which the NIS summed over the last ``window_s`` exceeds the chi-square
+    quantile 1 - 1e-4 of its summed degrees of freedom: the innovations no longer fit the
+    filter's covariance (it has lost track, or its model does not fit, as ekf-baseline's
+    free frame). A window needs at least 5 updates."""
+    v = np.where(dof > 0, np.nan_to_num(nis), 0.0)
+    cv, cd = np.concatenate([[0.0], np.cumsum(v)]), np.concatenate([[0.0], np.cumsum(dof)])
+    cn = np.concatenate([[0], np.cumsum(dof > 0)])
+    lo = np.searchsorted(t, t - window_s, side="right")
+    k = np.arange(len(t)) + 1
+    s_nis, s_dof, cnt = cv[k] - cv[lo], cd[k] - cd[lo], cn[k] - cn[lo]
+    bound = stats.chi2.isf(1e-4, np.maximum(s_dof, 1))
+    return (cnt >= 5) & (s_nis > bound)
+
+
 def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
     """One :class:`EstimateHistory` per run of a :func:`run_filter` result."""
     fe = res["frontend"]
@@ -474,6 +492,9 @@ def histories(res: dict[str, Any], scenario: Any) -> list[EstimateHistory]:
         skipped["frame_flips"] = int(res["frame_flips"][b])
         reinit = res.get("reinit_epochs", [[]] * len(res["x"]))[b]
         skipped["reinitialised"] = len(reinit)
+        # a filter that has lost track says so: epochs whose innovations over the last
+        # NIS_WINDOW_S fail a chi-square test at 1e-4 (tumblenav default)
+        skipped["nis_alarm"] = int(nis_alarm(res["t"], res["nis"][b], res["nis_dof"][b]).sum())
         k0 = res["k0"][b]
         out.append(
             EstimateHistory(
