@@ -411,3 +411,132 @@ def test_bad_input_is_an_input_error():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         StereoRenderer(procedural_satellite(), rig, NO_NOISE)  # no warning by default
+
+
+# -------------------------------------------------------------------------------------------
+# speed paths: the same pixels and statistics as the plain computation
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_rays_only_where_triangles_project_give_the_pixels_and_truth_of_the_whole_roi(
+    supersample, monkeypatch
+):
+    """The renderer casts only the ROI pixels that a projected triangle (grown by 1/2 px) can
+    cover; with the margin so large that every ROI pixel is cast, images and truth maps are
+    bit-identical, and the culling does skip most of the ROI for a tumbling satellite."""
+    from tumblenav.sensors import render
+
+    rig = convergent_rig(500.0, 0.6, np.deg2rad(10.0), (320, 300))
+    r = StereoRenderer(
+        procedural_satellite(), rig, RenderSettings(noise=None, supersample=supersample)
+    )
+    poses = [
+        (Rotation.from_quat(q).as_matrix(), np.array([0.3, rng_m, 0.1]))
+        for q, rng_m in zip(
+            Rotation.random(4, random_state=11).as_quat(), (1.5, 3.0, 6.0, 12.0), strict=True
+        )
+    ]
+    sun = [0.3, -0.8, 0.5]
+    culled = [r.render(R, p, sun, None) for R, p in poses]
+    cam = rig.cameras[0]
+    R_kM = cam.R_CkC @ poses[2][0]
+    p_k = cam.R_CkC @ (poses[2][1] - cam.p_CkinC)
+    roi = r._roi(cam, R_kM, p_k)
+    cast = r._covered(cam, R_kM, p_k, roi).size
+    assert cast < 0.7 * (roi[1] - roi[0]) * (roi[3] - roi[2])
+    monkeypatch.setattr(render, "_COVER_MARGIN_PX", 1e6)
+    assert r._covered(cam, R_kM, p_k, roi).size == (roi[1] - roi[0]) * (roi[3] - roi[2])
+    for (R, p), a in zip(poses, culled, strict=True):
+        b = r.render(R, p, sun, None)
+        assert a.mask.sum() > 500
+        assert np.array_equal(a.images, b.images)
+        assert np.array_equal(a.mask, b.mask)
+        assert np.array_equal(a.depth_m, b.depth_m, equal_nan=True)
+        assert np.array_equal(a.hit_M, b.hit_M, equal_nan=True)
+
+
+_NOISES = [
+    ImageNoise(read_noise_e=10.0, dark_current_e=5.0),  # chang2021_close: Poisson dark + read
+    ImageNoise(full_well_e=255.0, shot=False, read_noise_e=3.0, dark_current_e=40.0),
+    ImageNoise(full_well_e=2000.0, dark_current_e=60.0),  # dark in the Gaussian limit, no read
+    ImageNoise(full_well_e=500.0, dark_current_e=7.0),  # exact Poisson, no read: discrete DN
+    ImageNoise(full_well_e=255.0, read_noise_e=0.7),  # read noise only
+]
+
+
+@pytest.mark.parametrize("noise", _NOISES)
+def test_background_pmf_is_the_per_pixel_chains_distribution(noise):
+    """A pixel without signal: its DN probabilities (background_pmf) against 2e6 draws of the
+    per-pixel chain (Poisson dark, exact below 50 e- with shot noise on, Gaussian limit
+    above; + read noise; quantised and clipped): every DN within 5 sigma of its binomial
+    count, and a dark 1024 x 256 frame from apply_noise has the pmf's mean and spread."""
+    from tumblenav.sensors.image_noise import background_pmf
+
+    pmf = background_pmf(noise)
+    assert pmf.shape == (256,) and pmf.sum() == pytest.approx(1.0) and np.all(pmf >= 0)
+    rng = np.random.default_rng(42)
+    n = 2_000_000
+    lam = noise.dark_current_e
+    if noise.shot and lam >= 50.0:
+        e = (lam + np.sqrt(lam) * rng.standard_normal(n)).astype(np.float32)
+    else:
+        e = rng.poisson(lam, n).astype(np.float32)
+    e = e + np.float32(noise.read_noise_e) * rng.standard_normal(n, dtype=np.float32)
+    dn = np.clip(np.rint(e * np.float32(255.0 / noise.full_well_e)), 0, 255).astype(int)
+    count = np.bincount(dn, minlength=256)
+    sigma = np.sqrt(n * pmf * (1 - pmf))
+    assert np.all(np.abs(count - n * pmf) <= 5.0 * sigma + 2.0)
+    frame = apply_noise(np.zeros((256, 1024), np.float32), noise, rng).astype(float)
+    mean = float(np.arange(256) @ pmf)
+    sd = float(np.sqrt((np.arange(256) - mean) ** 2 @ pmf))
+    assert abs(frame.mean() - mean) <= 5.0 * sd / 512.0 + 1e-9
+    if sd > 0.1:
+        assert frame.std() == pytest.approx(sd, rel=0.02)
+
+
+def test_dark_pixels_draw_only_their_rare_non_zero_outcomes_independently():
+    """chang2021_close's noise: a dark pixel reads 1 DN with probability ~4.3e-4 (39 e-
+    above a 5 e- dark level with 10 e- read noise).  Over 8 dark 1024^2 frames the count of
+    1-DN pixels is the binomial one (5 sigma), their positions change from frame to frame,
+    and a lit square keeps the shot + read variance."""
+    from tumblenav.sensors.image_noise import background_pmf
+
+    noise = ImageNoise(read_noise_e=10.0, dark_current_e=5.0)
+    p1 = background_pmf(noise)[1]
+    assert 3e-4 < p1 < 6e-4 and background_pmf(noise)[2:].sum() < 1e-20
+    rng = np.random.default_rng(3)
+    s = np.zeros((1024, 1024), np.float32)
+    s[400:600, 300:700] = 0.5  # 10000 e-
+    frames = [apply_noise(s, noise, rng) for _ in range(8)]
+    dark = np.ones(s.shape, bool)
+    dark[400:600, 300:700] = False
+    ones = np.array([f[dark] for f in frames])
+    n = dark.sum() * 8
+    assert abs((ones == 1).sum() - n * p1) <= 5.0 * np.sqrt(n * p1) and ones.max() == 1
+    assert not np.array_equal(frames[0][dark] == 1, frames[1][dark] == 1)
+    lit = np.array([f[~dark] for f in frames]).astype(float) * 20000.0 / 255.0
+    assert lit.mean() == pytest.approx(10005.0, rel=2e-3)
+    assert lit.var() == pytest.approx(10005.0 + 100.0 + (20000.0 / 255.0) ** 2 / 12.0, rel=0.03)
+
+
+def test_noise_on_the_signal_box_only_equals_the_whole_frame_computation():
+    """``support`` (a box outside which the signal is zero) and the blur computed on that box
+    grown by its kernel give the pixels of the whole-frame computation, near an image edge
+    too."""
+    import cv2
+
+    from tumblenav.sensors.image_noise import _blur
+
+    s = np.zeros((120, 160), np.float32)
+    s[2:30, 100:158] = np.random.default_rng(1).uniform(0.1, 0.9, (28, 58))
+    noise = ImageNoise(read_noise_e=20.0, dark_current_e=3.0)
+    a = apply_noise(s, noise, np.random.default_rng(5))
+    b = apply_noise(s, noise, np.random.default_rng(5), support=(0, 60, 90, 160))
+    assert np.array_equal(a, b)
+    for sigma in (0.8, 2.3):
+        full = cv2.GaussianBlur(s, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        win, box = _blur(s, sigma, (2, 30, 100, 158))
+        assert np.allclose(win, full, rtol=0, atol=1e-7)
+        outside = np.ones(s.shape, bool)
+        outside[box[0] : box[1], box[2] : box[3]] = False
+        assert np.all(full[outside] == 0)

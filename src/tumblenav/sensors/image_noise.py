@@ -20,22 +20,41 @@ each optional (its "off" value in brackets) and seeded by the caller's generator
 
 The steps are the ones of Basilisk's ``camera`` module (Gaussian noise, blur, dark current,
 dead/stuck pixels), in the order of the physics.  With every step off no random number is drawn.
+
+Speed (tumblenav default, same statistics as the per-pixel chain)
+-----------------------------------------------------------------
+Only the pixels that receive signal (``s > 0`` after the blur; the caller may name a box
+``support`` outside which its signal is zero) go through the per-pixel chain above, with one
+``float32`` Gaussian draw per pixel: in the Gaussian limit the shot and read noise are one
+Gaussian of variance ``e + dark + read^2`` (their sum, exactly), below it a Poisson draw plus
+the read noise.  Every other pixel (black space, shadows outside the target, eclipse frames)
+has the same DN distribution, that of dark current plus read noise, whose 256 probabilities
+are computed once (:func:`background_pmf`): the frame is drawn from them directly, as the
+few non-zero outcomes only when zero is likely (``P(DN > 0) <= _SPARSE_BELOW``: a binomial
+count, uniform positions without replacement, values from the pmf given DN > 0, which gives
+each pixel the pmf independently) and by inverse CDF otherwise.  The pixels' marginal
+distributions and their independence are those of the per-pixel chain (up to ``float32``
+rounding at the rounding boundaries); the draws, so the pixels of a given seed, differ from
+the chain's.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy import special, stats
 
 from tumblenav.errors import InputError
 
-__all__ = ["DefectPattern", "ImageNoise", "apply_noise", "defect_pattern"]
+__all__ = ["DefectPattern", "ImageNoise", "apply_noise", "background_pmf", "defect_pattern"]
 
 F32 = NDArray[np.float32]
 _GAUSS_ABOVE_E = 50.0
+_SPARSE_BELOW = 0.02  # P(DN > 0) of a dark pixel below which only non-zero DN are drawn
 
 
 @dataclass(frozen=True)
@@ -109,18 +128,103 @@ def defect_pattern(noise: ImageNoise, shape: tuple[int, int], camera: int) -> De
     return DefectPattern(np.sort(idx[:n_dead]), np.sort(idx[n_dead:]))
 
 
-def _poisson(lam: F32, rng: np.random.Generator) -> F32:
-    """Poisson draws of mean ``lam`` (float32): exact below ``_GAUSS_ABOVE_E``, Gaussian limit
-    (mean and variance ``lam``) above; zero where ``lam == 0`` (no draw)."""
-    out = lam.copy()
-    flat_lam, flat_out = lam.ravel(), out.ravel()
-    small = np.flatnonzero((flat_lam > 0) & (flat_lam < _GAUSS_ABOVE_E))
-    large = np.flatnonzero(flat_lam >= _GAUSS_ABOVE_E)
+Box = tuple[int, int, int, int]  # rows [j0, j1), columns [i0, i1)
+
+
+@lru_cache(maxsize=32)
+def background_pmf(noise: ImageNoise) -> NDArray[np.float64]:
+    """Probabilities of DN 0..255 of a pixel without signal: dark electrons (Poisson, exact
+    below ``_GAUSS_ABOVE_E`` with shot noise on, its Gaussian limit above, as the chain draws
+    them) plus Gaussian read noise, quantised and clipped as in :func:`apply_noise`."""
+    c = 255.0 / noise.full_well_e  # DN per electron
+    lam, sig = float(noise.dark_current_e), float(noise.read_noise_e)
+    pmf = np.zeros(256)
+    gauss_dark = noise.shot and lam >= _GAUSS_ABOVE_E
+    if lam > 0 and not gauss_dark:  # Poisson dark electrons k with weights w
+        spread = 12.0 * np.sqrt(lam) + 30.0  # the Poisson mass beyond is below 1e-30
+        k = np.arange(max(int(lam - spread), 0), int(lam + spread), dtype=float)
+        w = stats.poisson.pmf(k, lam)
+        if sig == 0:  # DN a function of k, as the chain computes it (float32)
+            dn = np.clip(np.rint(k.astype(np.float32) * np.float32(c)), 0, 255).astype(int)
+            np.add.at(pmf, dn, w)
+            return pmf / pmf.sum()
+    else:
+        k, w = np.zeros(1), np.ones(1)
+    mean = lam if gauss_dark else 0.0
+    sd = np.sqrt(sig**2 + (lam if gauss_dark else 0.0))
+    if sd == 0:
+        pmf[0] = 1.0
+        return pmf
+    # P(DN >= d) = P(e >= (d - 1/2) / c) for d = 1..255 (survival function: accurate tails)
+    edges = (np.arange(1, 256) - 0.5) / c
+    sf = (w[None, :] * special.ndtr((mean + k[None, :] - edges[:, None]) / sd)).sum(axis=1)
+    sf = np.concatenate([[1.0], sf, [0.0]])
+    pmf = np.maximum(sf[:-1] - sf[1:], 0.0)
+    return pmf / pmf.sum()
+
+
+def _background(noise: ImageNoise, n: int, rng: np.random.Generator) -> NDArray[np.uint8]:
+    """``n`` independent DN of pixels without signal, drawn from :func:`background_pmf`."""
+    pmf = background_pmf(noise)
+    p_on = 1.0 - pmf[0]
+    if p_on <= 0.0:
+        return np.zeros(n, np.uint8)
+    if p_on > _SPARSE_BELOW:  # inverse CDF, one uniform a pixel
+        cdf = np.cumsum(pmf).astype(np.float32)
+        cdf[-1] = np.float32(np.inf)
+        u = rng.random(n, dtype=np.float32)
+        return np.searchsorted(cdf, u, side="right").astype(np.uint8)
+    # mostly zeros: each pixel is non-zero with probability p_on, independently
+    out = np.zeros(n, np.uint8)
+    count = int(rng.binomial(n, p_on))
+    if count:
+        pos = rng.choice(n, size=count, replace=False)
+        out[pos] = rng.choice(255, size=count, p=pmf[1:] / p_on) + 1
+    return out
+
+
+def _signal_box(s: F32) -> Box:
+    """The smallest box holding every non-zero pixel of ``s`` (empty: (0, 0, 0, 0))."""
+    rows = np.flatnonzero(s.any(axis=1))
+    if rows.size == 0:
+        return 0, 0, 0, 0
+    cols = np.flatnonzero(s[rows[0] : rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _blur(s: F32, sigma: float, box: Box) -> tuple[F32, Box]:
+    """Gaussian PSF (reflected borders) of ``s``, zero outside ``box``; computed on the box
+    grown by twice the kernel radius (the same values as on the whole frame: the reflected
+    border there reads zeros), returns the blurred frame and its non-zero box."""
+    h, w = s.shape
+    j0, j1, i0, i1 = box
+    out = np.zeros_like(s)
+    if j1 <= j0 or i1 <= i0:
+        return out, box
+    r = int(np.ceil(4.0 * sigma)) + 1  # >= OpenCV's radius, cvRound(8 sigma + 1) // 2
+    a0, a1, b0, b1 = max(j0 - 2 * r, 0), min(j1 + 2 * r, h), max(i0 - 2 * r, 0), min(i1 + 2 * r, w)
+    win = cv2.GaussianBlur(
+        np.ascontiguousarray(s[a0:a1, b0:b1]), (0, 0), sigma, borderType=cv2.BORDER_REFLECT
+    )
+    out[a0:a1, b0:b1] = win
+    return out, (max(j0 - r, 0), min(j1 + r, h), max(i0 - r, 0), min(i1 + r, w))
+
+
+def _signal_electrons(lam: F32, e: F32, noise: ImageNoise, rng: np.random.Generator) -> F32:
+    """Noisy electrons of the pixels with signal: ``e`` signal electrons, ``lam = e + dark``;
+    one standard-normal draw per pixel (shot and read noise summed in the Gaussian limit)."""
+    read = np.float32(noise.read_noise_e)
+    z = rng.standard_normal(lam.size, dtype=np.float32)
+    if not noise.shot:
+        out = e.copy()
+        if noise.dark_current_e > 0:
+            out += rng.poisson(noise.dark_current_e, size=lam.size).astype(np.float32)
+        return out + read * z
+    out = lam + np.sqrt(lam + read * read) * z  # Gaussian limit: shot + read in one draw
+    small = np.flatnonzero(lam < _GAUSS_ABOVE_E)
     if small.size:
-        flat_out[small] = rng.poisson(flat_lam[small]).astype(np.float32)
-    if large.size:
-        z = rng.standard_normal(large.size, dtype=np.float32)
-        flat_out[large] += np.sqrt(flat_lam[large]) * z
+        exact = rng.poisson(lam[small]).astype(np.float32)
+        out[small] = exact + read * z[small]
     return out
 
 
@@ -129,29 +233,44 @@ def apply_noise(
     noise: ImageNoise | None,
     rng: np.random.Generator | None,
     defects: DefectPattern | None = None,
+    support: Box | None = None,
 ) -> NDArray[np.uint8]:
     """Turn an image level map ``signal`` (H, W; fraction of full scale, >= 0) into 8-bit DN.
 
     ``noise=None`` quantises only.  ``rng`` is used only when ``noise.random``; ``defects``
-    (from :func:`defect_pattern`) may be None when there are none.
+    (from :func:`defect_pattern`) may be None when there are none.  ``support`` (rows
+    ``[j0, j1)``, columns ``[i0, i1)``): the caller's promise that ``signal`` is zero outside
+    that box (None: found here).
     """
     s = np.asarray(signal, dtype=np.float32)
-    if noise is None:
-        return np.clip(np.rint(s * 255.0), 0, 255).astype(np.uint8)
-    if noise.blur_sigma_px > 0:
-        blurred = cv2.GaussianBlur(s, (0, 0), noise.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-        s = np.asarray(blurred, np.float32)
-    e = s * np.float32(noise.full_well_e)
-    if noise.random:
+    if s.ndim != 2:
+        raise InputError(f"signal must be a 2-D image, got shape {s.shape}")
+    h, w = s.shape
+    box = _signal_box(s) if support is None else support
+    j0, j1, i0, i1 = box = (max(box[0], 0), min(box[1], h), max(box[2], 0), min(box[3], w))
+    if noise is not None and noise.blur_sigma_px > 0:
+        s, box = _blur(s, noise.blur_sigma_px, box)
+        j0, j1, i0, i1 = box
+    dn = np.zeros((h, w), np.uint8)
+    if noise is None or not noise.random:
+        full = 255.0 if noise is None else noise.full_well_e
+        e = s[j0:j1, i0:i1] * np.float32(full)
+        q = np.rint(e * np.float32(255.0 / full))
+        dn[j0:j1, i0:i1] = np.clip(q, 0, 255).astype(np.uint8)
+    else:
         if rng is None:
             raise InputError("this image noise needs a random generator")
-        if noise.shot:
-            e = _poisson(e + np.float32(noise.dark_current_e), rng)
-        elif noise.dark_current_e > 0:
-            e = e + np.asarray(rng.poisson(noise.dark_current_e, size=e.shape), np.float32)
-        if noise.read_noise_e > 0:
-            e = e + np.float32(noise.read_noise_e) * rng.standard_normal(e.shape, np.float32)
-    dn = np.clip(np.rint(e * np.float32(255.0 / noise.full_well_e)), 0, 255).astype(np.uint8)
+        flat = dn.reshape(-1)
+        flat[:] = _background(noise, flat.size, rng)
+        if j1 > j0 and i1 > i0:
+            sub = s[j0:j1, i0:i1]
+            rr, cc = np.nonzero(sub > 0)
+            idx = (rr + j0) * w + (cc + i0)
+            e = sub[rr, cc] * np.float32(noise.full_well_e)
+            lam = e + np.float32(noise.dark_current_e)
+            out = _signal_electrons(lam, e, noise, rng)
+            q = np.rint(out * np.float32(255.0 / noise.full_well_e))
+            flat[idx] = np.clip(q, 0, 255).astype(np.uint8)
     if defects is not None:
         flat = dn.reshape(-1)
         flat[defects.dead] = 0

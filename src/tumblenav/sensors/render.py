@@ -62,6 +62,9 @@ __all__ = ["ImageNoise", "RenderSettings", "RenderedPair", "StereoRenderer"]
 Array = NDArray[np.float64]
 F32 = NDArray[np.float32]
 _TEXTURES = ("procedural", "mesh")
+# tumblenav default: a pixel is cast if its square grown by this much meets a projected
+# triangle (float rounding in Embree's float32 test is far below it)
+_COVER_MARGIN_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -203,6 +206,7 @@ def _shade(
     sun,
     has_sun,
     eps,
+    truth,
     hit_out,
     depth_out,
     albedo_out,
@@ -212,7 +216,8 @@ def _shade(
     shadow_ray,
 ):
     """Per ray: point in M (float32), depth along the camera axis, albedo and cos(sun); misses
-    get NaN point and depth, zero albedo and cos(sun).  The rays whose point faces the sun get
+    get NaN point and depth, zero albedo and cos(sun); ``truth`` False leaves ``hit_out`` and
+    ``depth_out`` untouched (they may be of length 1).  The rays whose point faces the sun get
     a shadow ray, packed into the first rows of ``shadow_origin``/``shadow_dir``
     (``shadow_ray`` holds their ray index); returns their number."""
     nan = np.nan
@@ -220,10 +225,11 @@ def _shade(
     for i in range(prim.shape[0]):
         f = prim[i]
         if f < 0:
-            hit_out[i, 0] = nan
-            hit_out[i, 1] = nan
-            hit_out[i, 2] = nan
-            depth_out[i] = nan
+            if truth:
+                hit_out[i, 0] = nan
+                hit_out[i, 1] = nan
+                hit_out[i, 2] = nan
+                depth_out[i] = nan
             albedo_out[i] = 0.0
             cos_out[i] = 0.0
             continue
@@ -234,10 +240,11 @@ def _shade(
         hx = b0 * tri[f, 0, 0] + b1 * tri[f, 1, 0] + b2 * tri[f, 2, 0]
         hy = b0 * tri[f, 0, 1] + b1 * tri[f, 1, 1] + b2 * tri[f, 2, 1]
         hz = b0 * tri[f, 0, 2] + b1 * tri[f, 1, 2] + b2 * tri[f, 2, 2]
-        hit_out[i, 0] = hx
-        hit_out[i, 1] = hy
-        hit_out[i, 2] = hz
-        depth_out[i] = R_kM[1, 0] * hx + R_kM[1, 1] * hy + R_kM[1, 2] * hz + p_MinCk[1]
+        if truth:
+            hit_out[i, 0] = hx
+            hit_out[i, 1] = hy
+            hit_out[i, 2] = hz
+            depth_out[i] = R_kM[1, 0] * hx + R_kM[1, 1] * hy + R_kM[1, 2] * hz + p_MinCk[1]
         dx = np.float64(dirs[i, 0])
         dy = np.float64(dirs[i, 1])
         dz = np.float64(dirs[i, 2])
@@ -277,16 +284,65 @@ def _shade(
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _primary_rays(us, vs, R_kM, origin, dirs, origins):
-    """Rays ``(x, 1, z)`` of camera k (so Embree's t is the depth) turned into M:
-    ``x r0 + r1 + z r2`` with ``r_i`` the rows of ``R_kM``; row-major over (vs, us)."""
-    i = 0
-    for z in vs:
-        for x in us:
-            for a in range(3):
-                dirs[i, a] = x * R_kM[0, a] + R_kM[1, a] + z * R_kM[2, a]
-                origins[i, a] = origin[a]
-            i += 1
+def _coverage(tri_uv, rh, rw, margin, cover):
+    """Mark in ``cover`` (rh, rw) the pixels of the ROI whose square, grown by ``margin`` px,
+    meets a projected triangle (``tri_uv`` (F, 3, 2): vertex pixel coordinates relative to the
+    ROI corner, every vertex in front of the camera): per triangle and pixel row, the exact
+    column extent of the triangle within the row's strip (the strip's polygon has its
+    vertices on the clipped edges)."""
+    for f in range(tri_uv.shape[0]):
+        vmin = min(tri_uv[f, 0, 1], tri_uv[f, 1, 1], tri_uv[f, 2, 1])
+        vmax = max(tri_uv[f, 0, 1], tri_uv[f, 1, 1], tri_uv[f, 2, 1])
+        r0 = max(int(np.floor(vmin - margin)), 0)
+        r1 = min(int(np.floor(vmax + margin)) + 1, rh)
+        for j in range(r0, r1):
+            ylo = j - margin
+            yhi = j + 1.0 + margin
+            xmin = np.inf
+            xmax = -np.inf
+            for e in range(3):
+                ua = tri_uv[f, e, 0]
+                va = tri_uv[f, e, 1]
+                ub = tri_uv[f, (e + 1) % 3, 0]
+                vb = tri_uv[f, (e + 1) % 3, 1]
+                if max(va, vb) < ylo or min(va, vb) > yhi:
+                    continue
+                if va == vb:
+                    xa = ua
+                    xb = ub
+                else:  # the edge's part inside the strip
+                    ta = min(max((ylo - va) / (vb - va), 0.0), 1.0)
+                    tb = min(max((yhi - va) / (vb - va), 0.0), 1.0)
+                    xa = ua + ta * (ub - ua)
+                    xb = ua + tb * (ub - ua)
+                xmin = min(xmin, xa, xb)
+                xmax = max(xmax, xa, xb)
+            if xmax < xmin:
+                continue
+            c0 = max(int(np.floor(xmin - margin)), 0)
+            c1 = min(int(np.floor(xmax + margin)) + 1, rw)
+            for i in range(c0, c1):
+                cover[j, i] = True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _primary_rays(pix, rw, n, i0, j0, cu, cv, f, R_kM, origin, dirs, origins):
+    """Rays of the ROI pixels ``pix`` (flat, row-major in a ROI ``rw`` wide whose corner is
+    pixel ``(i0, j0)``), an n x n grid each at sub-pixel ``(a + 0.5) / n``, ordered (pixel,
+    sub-row, sub-column): ``(x, 1, z)`` in camera k (so Embree's t is the depth) turned into
+    M, ``x r0 + r1 + z r2`` with ``r_i`` the rows of ``R_kM``."""
+    r = 0
+    for p in pix:
+        row = j0 + p // rw
+        col = i0 + p % rw
+        for a in range(n):
+            z = (row + (a + 0.5) / n - cv) / f
+            for b in range(n):
+                x = (col + (b + 0.5) / n - cu) / f
+                for c in range(3):
+                    dirs[r, c] = x * R_kM[0, c] + R_kM[1, c] + z * R_kM[2, c]
+                    origins[r, c] = origin[c]
+                r += 1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -310,6 +366,8 @@ class _Scene:
     tri: Array  # (F, 3, 3) vertices of each face in M (m)
     normals: Array  # (F, 3) unit face normals in M
     corners_M: Array  # (8, 3) bounding-box corners in M
+    vertices: Array  # (V, 3) mesh vertices in M (m)
+    faces: NDArray[np.int64]  # (F, 3) vertex indices of each face
     eps_m: float  # shadow-ray offset
     tex: SurfaceTextures
 
@@ -347,6 +405,8 @@ def _scene_for(model: TargetModel, texture: str) -> _Scene:
         tri=np.ascontiguousarray(tri),
         normals=np.ascontiguousarray(n),
         corners_M=corners,
+        vertices=np.ascontiguousarray(vertices),
+        faces=np.ascontiguousarray(faces),
         eps_m=max(1e-5 * scale, 1e-6) * 10.0,
         tex=surface_textures(mesh, texture),
     )
@@ -363,6 +423,7 @@ def _scene_for(model: TargetModel, texture: str) -> _Scene:
 @dataclass(frozen=True, eq=False)
 class _CameraFrame:
     signal: F32  # (H, W) image level, fraction of full scale
+    support: tuple[int, int, int, int]  # rows [j0, j1), columns [i0, i1): signal 0 outside
     depth: F32 | None
     hit: F32 | None
     mask: NDArray[np.bool_] | None
@@ -458,7 +519,8 @@ class StereoRenderer:
         def job(k: int) -> tuple[NDArray[np.uint8], _CameraFrame]:
             frame = self._render_camera(k, R, p, sun_M, truth)
             gen = np.random.default_rng(seeds[k]) if seeds[k] is not None else None
-            return apply_noise(frame.signal, noise, gen, self._defects[k]), frame
+            img = apply_noise(frame.signal, noise, gen, self._defects[k], frame.support)
+            return img, frame
 
         if self.settings.threads == 2:
             with ThreadPoolExecutor(max_workers=2) as pool:
@@ -500,6 +562,27 @@ class StereoRenderer:
         j1 = int(np.clip(np.ceil(v.max()) + 1, 0, h))
         return i0, i1, j0, j1
 
+    def _covered(
+        self, cam: Camera, R_kM: Array, p_MinCk: Array, roi: tuple[int, int, int, int]
+    ) -> NDArray[np.int64]:
+        """Flat (row-major) indices of the ROI pixels that the target's triangles may cover
+        (their projections grown by ``_COVER_MARGIN_PX``); every pixel when a vertex is not in
+        front of the camera.  The other pixels' rays would miss: they are not cast."""
+        sc = self._scene
+        i0, i1, j0, j1 = roi
+        rh, rw = j1 - j0, i1 - i0
+        pts = sc.vertices @ R_kM.T + p_MinCk
+        y = pts[:, 1]
+        if np.any(y <= 1e-9):
+            return np.arange(rh * rw, dtype=np.int64)
+        f, (cu, cv) = cam.focal_px, cam.principal_point_px
+        uv = np.empty((len(pts), 2))
+        uv[:, 0] = cu + f * pts[:, 0] / y - i0
+        uv[:, 1] = cv + f * pts[:, 2] / y - j0
+        cover = np.zeros((rh, rw), np.bool_)
+        _coverage(uv[sc.faces], rh, rw, _COVER_MARGIN_PX, cover)
+        return np.flatnonzero(cover)
+
     def _cast(
         self,
         cam: Camera,
@@ -507,28 +590,27 @@ class StereoRenderer:
         p_MinCk: Array,
         sun_M: Array | None,
         roi: tuple[int, int, int, int],
+        pix: NDArray[np.int64],
         n: int,
         shade: bool,
+        truth: bool,
     ) -> tuple[NDArray[np.int32], F32, F32, F32]:
-        """Cast an n x n grid of rays per pixel of the ROI; returns (prim, hit, depth, level),
-        rays ordered (row, sub-row, column, sub-column)."""
+        """Cast an n x n grid of rays per ROI pixel ``pix``; returns per pixel (prim, hit,
+        depth, level), prim, hit and depth of the pixel's first ray (``truth`` False: hit and
+        depth are not filled), the level averaged over its n x n rays."""
         sc = self._scene
         i0, i1, j0, j1 = roi
         f, (cu, cv) = cam.focal_px, cam.principal_point_px
-        sub = (np.arange(n) + 0.5) / n  # sub-pixel positions; n = 1: the pixel centre
-        us = ((np.arange(i0, i1)[:, None] + sub[None, :]).ravel() - cu) / f
-        vs = ((np.arange(j0, j1)[:, None] + sub[None, :]).ravel() - cv) / f
-        nr = us.size * vs.size
-        # ray (x, 1, z) in C_k (so Embree's t is the depth), in M: x r0 + r1 + z r2 with r_i
-        # the rows of R_kM (broadcasting, not matmul: BLAS threads would fight ours)
+        nr = pix.size * n * n
         origin = -R_kM.T @ p_MinCk  # the camera centre in M
         dirs = np.empty((nr, 3), np.float32)
         orig = np.empty((nr, 3), np.float32)
-        _primary_rays(us, vs, R_kM, origin, dirs, orig)
+        _primary_rays(pix, i1 - i0, n, i0, j0, cu, cv, f, R_kM, origin, dirs, orig)
         res = sc.embree.run(orig, dirs, output=1)
         prim = res["primID"]
-        hit = np.empty((nr, 3), np.float32)
-        depth = np.empty(nr, np.float32)
+        m = nr if truth else 1
+        hit = np.empty((m, 3), np.float32)
+        depth = np.empty(m, np.float32)
         albedo = np.empty(nr, np.float32)
         cos_s = np.empty(nr, np.float32)
         s_orig = orig  # reused: rewritten for the rays that need a shadow ray
@@ -558,6 +640,7 @@ class StereoRenderer:
             sun,
             shade and sun_M is not None,
             sc.eps_m,
+            truth,
             hit,
             depth,
             albedo,
@@ -573,6 +656,9 @@ class StereoRenderer:
             if n_lit:
                 occluded = sc.embree.run(s_orig[:n_lit], s_dir[:n_lit], query="OCCLUDED")
             _light(albedo, cos_s, s_ray[:n_lit], occluded, st.exposure, st.ambient, level)
+        if n > 1:
+            level = level.reshape(pix.size, n * n).mean(axis=1)
+            prim, hit, depth = prim[:: n * n], hit[:: n * n], depth[:: n * n]
         return prim, hit, depth, level
 
     def _render_camera(
@@ -589,21 +675,37 @@ class StereoRenderer:
             depth = np.full((h, w), np.nan, np.float32)
             hit_map = np.full((h, w, 3), np.nan, np.float32)
             mask = np.zeros((h, w), bool)
+        empty = (0, 0, 0, 0)
         if i1 <= i0 or j1 <= j0:
-            return _CameraFrame(signal, depth, hit_map, mask)
-        rh, rw = j1 - j0, i1 - i0
+            return _CameraFrame(signal, empty, depth, hit_map, mask)
         n = self.settings.supersample
         shade_centre = n == 1 and sun_M is not None
+        if not (truth or sun_M is not None):
+            return _CameraFrame(signal, empty, depth, hit_map, mask)
+        pix = self._covered(cam, R_kM, p_MinCk, roi)
+        if pix.size == 0:
+            return _CameraFrame(signal, empty, depth, hit_map, mask)
+        rw = i1 - i0
+        rows, cols = pix // rw, pix % rw
+        at = (rows + j0) * w + (cols + i0)  # flat indices in the frame
         if truth or shade_centre:
-            prim, hit, dep, level = self._cast(cam, R_kM, p_MinCk, sun_M, roi, 1, shade_centre)
+            prim, hit, dep, level = self._cast(
+                cam, R_kM, p_MinCk, sun_M, roi, pix, 1, shade_centre, truth
+            )
             if shade_centre:
-                signal[j0:j1, i0:i1] = level.reshape(rh, rw)
+                signal.reshape(-1)[at] = level
             if truth:
                 assert depth is not None and hit_map is not None and mask is not None
-                mask[j0:j1, i0:i1] = (prim >= 0).reshape(rh, rw)
-                depth[j0:j1, i0:i1] = dep.reshape(rh, rw)
-                hit_map[j0:j1, i0:i1] = hit.reshape(rh, rw, 3)
+                mask.reshape(-1)[at] = prim >= 0
+                depth.reshape(-1)[at] = dep
+                hit_map.reshape(-1, 3)[at] = hit
         if n > 1 and sun_M is not None:
-            _, _, _, level = self._cast(cam, R_kM, p_MinCk, sun_M, roi, n, True)
-            signal[j0:j1, i0:i1] = level.reshape(rh, n, rw, n).mean(axis=(1, 3))
-        return _CameraFrame(signal, depth, hit_map, mask)
+            level = self._cast(cam, R_kM, p_MinCk, sun_M, roi, pix, n, True, False)[3]
+            signal.reshape(-1)[at] = level
+        support = (
+            j0 + int(rows[0]),
+            j0 + int(rows[-1]) + 1,
+            i0 + int(cols.min()),
+            i0 + int(cols.max()) + 1,
+        )
+        return _CameraFrame(signal, support, depth, hit_map, mask)
