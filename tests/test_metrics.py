@@ -167,3 +167,20 @@ def test_branch_counts_and_warning():
     assert metrics.branch_warning({"nominal": 20}) is None
     assert metrics.branch_warning(None) is None
     assert metrics.branch_warning({"nominal": 0, "half turn x": 1}).startswith("1 of 1 run ")
+
+
+def test_consistency_bounds_count_the_runs_with_a_value():
+    """Runs without a value in the window (not started, stopped as diverged) are not in the
+    run average, so the bounds are for the runs that are: a consistent filter whose half of
+    the runs stopped is still inside about 95% of the time."""
+    rng = np.random.default_rng(12)
+    runs, n, d = 40, 400, 6
+    t = np.arange(n, dtype=float)
+    values = stats.chi2.rvs(d, size=(runs, n), random_state=rng)
+    values[20:, 50:] = np.nan  # half the runs stop at t = 50 s
+    res = metrics.consistency(values, d, t, (100.0, t[-1]))
+    assert res["bounds95"] == list(metrics.chi2_bounds(d, 20))
+    assert 0.9 <= res["inside_fraction"] <= 1.0
+    # every run with a value: the bounds for all of them, as before
+    full = metrics.consistency(values[:20], d, t, (100.0, t[-1]))
+    assert full["bounds95"] == list(metrics.chi2_bounds(d, 20))

@@ -214,8 +214,17 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
 
     ``values``: (runs, n); ``dof``: int or (runs, n) (NIS dof vary with visible features).
     Returns ``mean`` (time average in the window of the run-averaged normalised value),
-    ``dof``, ``bounds95`` (for an average over the number of runs) and ``inside_fraction``
-    (fraction of window times whose run-average lies inside the bounds).
+    ``dof``, ``bounds95`` (for an average over the number of runs: Bar-Shalom's average NEES,
+    ``R`` runs' sum is chi2(``R dof``) at each time; ``R`` the median over the window of the
+    runs with a value) and ``inside_fraction`` (fraction of window times whose run-average
+    lies inside the bounds).
+
+    The bounds are exact for the run average at one time, hence for ``inside_fraction``. For
+    ``mean``, a time average over correlated epochs, they are conservative: its own 95%
+    range is narrower (by up to the square root of the number of independent epochs in the
+    window), and equals them only when the errors are fully correlated over the window; so
+    a ``mean`` outside them is inconsistent, one inside them may still be off by up to about
+    the bounds' width.
     """
     v = np.atleast_2d(np.asarray(values, dtype=float))
     d = np.broadcast_to(np.asarray(dof, dtype=float), v.shape)
@@ -223,10 +232,14 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
     valid = np.isfinite(v) & (d > 0)
     norm = np.where(valid, v / np.where(d > 0, d, 1.0), np.nan)
     per_t = nanmean_quiet(norm[:, m], axis=0)
-    runs = v.shape[0]
     dof_typ = int(np.round(np.nanmedian(np.where(valid, d, np.nan)))) if valid.any() else 0
     if dof_typ == 0 or not np.isfinite(per_t).any():
         return {"mean": None, "dof": dof_typ, "bounds95": None, "inside_fraction": None}
+    # the run average at a time is over the runs that have a value then (runs not started,
+    # stopped as diverged, or without an update are not in it): the bounds are for the
+    # typical number of them in the window (all runs when every run has a value)
+    counts = valid[:, m].sum(axis=0)
+    runs = max(1, int(np.round(np.median(counts[np.isfinite(per_t)]))))
     lo, hi = chi2_bounds(dof_typ, runs)
     finite = per_t[np.isfinite(per_t)]
     return {
