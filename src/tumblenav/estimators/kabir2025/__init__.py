@@ -71,6 +71,7 @@ paper's per-frequency Q and flow noise.
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Literal
 
 import numpy as np
@@ -81,9 +82,9 @@ from tumblenav.estimators.base import (
     register,
 )
 from tumblenav.estimators.context import context_from_scenario
-from tumblenav.estimators.kabir2025.filter import _filter, _history, run_ukf
-from tumblenav.estimators.kabir2025.init import initial_state
-from tumblenav.estimators.kabir2025.model import check_scenario, geometry
+from tumblenav.estimators.kabir2025.filter import _filter, _history, prepare, run_ukf
+from tumblenav.estimators.kabir2025.init import error_to_filter_cov
+from tumblenav.estimators.kabir2025.model import _process_noise, check_scenario, geometry
 from tumblenav.estimators.kabir2025.observations import stereo_measurements
 from tumblenav.estimators.kabir2025.tuning import parse_tuning
 from tumblenav.measurements import STEREO_TRACKS
@@ -122,7 +123,10 @@ class KabirUKF:
         tun = parse_tuning(scenario.estimator.tuning)
         geom = geometry(scenario, measurements.t, measurements)
         z, R = stereo_measurements(measurements, tun)
-        return run_ukf(scenario, measurements.t, z, R, self.variant, tun, geom)
+        hist = run_ukf(scenario, measurements.t, z, R, self.variant, tun, geom)
+        for line in hist.info.get("warnings", []):
+            warnings.warn(line, stacklevel=2)
+        return hist
 
     def run_batch(
         self, scenario: Any, measurements: list, rngs: list, p_every: int = 1
@@ -144,18 +148,34 @@ class KabirUKF:
         )
         if not same:
             raise ValueError("run_batch needs runs with the same epochs and geometry")
-        zs, Rs, x0s, P0s = [], [], [], []
+        zs, Rs, x0s, P0s, Qs, preps = [], [], [], [], [], []
         for m in measurements:
             z, R = stereo_measurements(m, tun)
-            x0, P0 = initial_state(scenario, t, z, g0, tun, self.variant)
+            prep = prepare(scenario, t, z, R, g0, tun)
+            N = z.shape[1]
             zs.append(z)
-            Rs.append(R)
-            x0s.append(x0)
-            P0s.append(P0)
+            Rs.append(prep.R_diag)
+            x0s.append(prep.start.x0)
+            P0s.append(error_to_filter_cov(prep.start.x0, prep.start.P0_err, self.variant))
+            Qs.append(_process_noise(prep.tuning, N, self.variant))
+            preps.append(prep)
         res = _filter(
-            t, np.stack(zs), np.stack(Rs), np.stack(x0s), np.stack(P0s), g0, tun, self.variant
+            t,
+            np.stack(zs),
+            np.stack(Rs),
+            np.stack(x0s),
+            np.stack(P0s),
+            g0,
+            preps[0].tuning,
+            self.variant,
+            k0=np.array([p.start.k0 for p in preps]),
+            skip_first=np.array([p.start.info.get("init") == "identified" for p in preps]),
+            Q=np.stack(Qs),
         )
-        return [_history(t, res, b, self.variant, tun, x0s[b]) for b in range(len(measurements))]
+        return [
+            _history(t, res, b, self.variant, preps[b].tuning, x0s[b], preps[b])
+            for b in range(len(measurements))
+        ]
 
 
 register("ukf")(lambda: KabirUKF("additive"))

@@ -4,6 +4,7 @@ the histories."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -20,7 +21,7 @@ from tumblenav.estimators.base import (
     fold,
 )
 from tumblenav.estimators.context import context_from_scenario
-from tumblenav.estimators.kabir2025.init import initial_state
+from tumblenav.estimators.kabir2025.init import KabirStart, error_to_filter_cov, start
 from tumblenav.estimators.kabir2025.model import (
     KabirGeometry,
     _boxplus,
@@ -32,7 +33,12 @@ from tumblenav.estimators.kabir2025.model import (
     propagate_rotation,
 )
 from tumblenav.estimators.kabir2025.observations import measurement_model
-from tumblenav.estimators.kabir2025.tuning import KabirTuning, parse_tuning
+from tumblenav.estimators.kabir2025.tuning import (
+    KabirTuning,
+    derive_tuning,
+    parse_tuning,
+    resolve_tuning,
+)
 from tumblenav.estimators.kabir2025.unscented import _Unscented
 
 Array = NDArray[np.float64]
@@ -139,6 +145,9 @@ class _UKFModel:
             G = np.broadcast_to(np.eye(d), P.shape).copy()
             G[:, 3:6, 3:6] += 0.5 * rot.skew(dx[:, 3:6])
             P = G @ P @ np.swapaxes(G, -1, -2)
+        x, P = canonical_axes(x, P, self.additive)
+        if not self.additive:
+            P = _cap_attitude(P)
         nis = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
         return x, P, nis, rows.sum(1), rejected, rep
 
@@ -152,9 +161,14 @@ def _filter(
     geom: KabirGeometry,
     tun: KabirTuning,
     variant: Variant,
+    k0: Array | None = None,
+    skip_first: Array | None = None,
+    Q: Array | None = None,
 ) -> dict[str, Any]:
-    """The batched engine: B filters at once, z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d);
-    the same predict and update as :class:`UKFSteps` (tested equal to its fold).
+    """The batched engine: B filters at once, z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d)
+    at each run's start epoch ``k0`` (B,) (default 0; ``skip_first``: no update at it, the
+    start already holds that epoch's data); the same predict and update as
+    :class:`UKFSteps` (tested equal to its fold).
 
     Returns x (B, n, nom), P (B, n, d, d) of the filter's own state, nis, nis_dof,
     rejected (B,), diverged_at (B,) epoch or -1, repairs (B,).
@@ -164,6 +178,8 @@ def _filter(
     nom = 9 + 3 * N
     d = P0.shape[-1]
     m = _UKFModel.make(d, N, geom, tun, variant)
+    if Q is not None:  # per run (B, d, d): each run's derived tuning
+        m = dataclasses.replace(m, Q=np.asarray(Q, dtype=float))
     z = z.reshape(B, n, M)
     Rv = Rv.reshape(B, n, M)
     usable = np.isfinite(z) & np.isfinite(Rv)
@@ -177,6 +193,10 @@ def _filter(
     repairs = np.zeros(B, dtype=np.int64)
     diverged_at = np.full(B, -1, dtype=np.int64)
     alive = np.ones(B, dtype=bool)
+    k0 = np.zeros(B, dtype=np.int64) if k0 is None else np.asarray(k0, dtype=np.int64)
+    skip_first = np.zeros(B, dtype=bool) if skip_first is None else np.asarray(skip_first)
+    x0 = np.asarray(x0, dtype=float)
+    P0 = np.asarray(P0, dtype=float)
 
     # a diverging run overflows before it is caught (and stopped) by the finite check
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -185,8 +205,13 @@ def _filter(
             try:
                 if k > 0:
                     x, P, rep = m.predict(x, P, t[k] - t[k - 1])
-                    repairs[rep & alive] += 1
-                rows = usable[:, k] & alive[:, None]
+                    repairs[rep & alive & (k > k0)] += 1
+                fresh = k0 == k
+                if fresh.any():  # runs starting now (before: placeholders, not reported)
+                    x = np.where(fresh[:, None], x0, x)
+                    P = np.where(fresh[:, None, None], P0, P)
+                started = k >= k0
+                rows = usable[:, k] & (alive & started & ~(fresh & skip_first))[:, None]
                 if rows.any():
                     x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows)
                     repairs[rep & alive] += 1
@@ -205,8 +230,9 @@ def _filter(
                 P = np.where(ok[:, None, None], P, P_prev)
                 if not alive.any():
                     break
-            xs[:, k] = np.where(alive[:, None], x, np.nan)
-            Ps[:, k] = np.where(alive[:, None, None], P, np.nan)
+            shown = alive & (k >= k0)
+            xs[:, k] = np.where(shown[:, None], x, np.nan)
+            Ps[:, k] = np.where(shown[:, None, None], P, np.nan)
     nis[~np.isfinite(xs[..., 0])] = np.nan
     return {
         "x": xs,
@@ -217,6 +243,7 @@ def _filter(
         "diverged_at": diverged_at,
         "repairs": repairs,
         "usable": usable.reshape(B, n, N, 9),
+        "k0": k0,
     }
 
 
@@ -235,11 +262,13 @@ class UKFSteps:
     x0: Array
     P0: Array
     layout: StateLayout
+    k0: int = 0
+    skip_first: bool = False
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
-        if k != 0:
+        if k != self.k0:
             return None, StepInfo()
-        return Belief(float(self.t[0]), self.x0.copy(), self.P0.copy(), self.layout), StepInfo()
+        return Belief(float(self.t[k]), self.x0.copy(), self.P0.copy(), self.layout), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -256,6 +285,8 @@ class UKFSteps:
     def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
         repairs = belief.memo or 0
         rows = (np.isfinite(self.z[k]) & np.isfinite(self.Rv[k]))[None]
+        if started and self.skip_first:
+            rows = np.zeros_like(rows)
         x, P = belief.x[None], belief.P[None]
         nis, dof, rej = float("nan"), 0, 0
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -311,6 +342,49 @@ def _gate(
     return (r & ~reject[..., None]).reshape(B, -1), reject.sum(axis=1)
 
 
+@dataclass
+class Prepared:
+    """A run's start, its tuning with the derived values filled in, the flow variances set
+    from it, and the warnings (issue 18: the tuning follows the scenario)."""
+
+    start: KabirStart
+    tuning: KabirTuning
+    R_diag: Array
+    derived: dict[str, float]
+    warnings: list[str]
+
+
+def prepare(
+    scenario: Any, t: Array, z: Array, R_diag: Array, geom: KabirGeometry, tun: KabirTuning
+) -> Prepared:
+    """The start (:func:`~tumblenav.estimators.kabir2025.init.start`) and the tuning derived
+    from it (:func:`~tumblenav.estimators.kabir2025.tuning.derive_tuning`): unset Q and
+    ``sigma_o`` take the derived values, explicit ones far from them draw a warning."""
+    scenario = context_from_scenario(scenario)  # never the target's truth
+    sigma_p = (
+        float(np.sqrt(np.nanmax(R_diag[..., 0]))) if np.isfinite(R_diag[..., 0]).any() else 1e-5
+    )
+    st = start(scenario, t, z, geom, tun, sigma_p)
+    x = st.x0
+    k0 = st.k0
+    R_CT = geom.R_CI @ rot.quat_to_matrix(x[3:7]).T
+    rho = geom.rho0_C[k0] + x[9:].reshape(-1, 3) @ R_CT.T
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    pn = getattr(scenario, "process_noise", None)
+    q_r = float(getattr(pn, "rotational_rad2_s4", 0.0) or 0.0)
+    derived = derive_tuning(
+        x[0:3], x[7:9], R_CT @ x[0:3], rho, geom.rho0_C[k0], geom.centres_x, dt, sigma_p, q_r
+    )
+    tun_r, warns = resolve_tuning(tun, derived)
+    R_diag = np.array(R_diag, dtype=float)
+    if tun.sigma_flow_rad_s is None:
+        flow = R_diag[..., 5:9]
+        R_diag[..., 5:9] = np.where(np.isfinite(flow), derived["sigma_flow_rad_s"] ** 2, flow)
+    if "warning" in st.info:
+        warns.append(st.info["warning"])
+    return Prepared(st, tun_r, R_diag, derived, warns)
+
+
 def run_ukf(
     scenario: Any,
     t: Array,
@@ -321,6 +395,7 @@ def run_ukf(
     geom: KabirGeometry | None = None,
     x0: Array | None = None,
     P0: Array | None = None,
+    prepared: Prepared | None = None,
 ) -> EstimateHistory:
     """Kabir 2025's UKF (``variant='additive'``) or its multiplicative variant (``'mult'``)
     on prepared measurements.
@@ -328,24 +403,28 @@ def run_ukf(
     Parameters
     ----------
     scenario : Scenario
-        For the known geometry (the mass centre from the settings, the rig).
+        For the known geometry (the mass centre from the settings, the rig) and the process
+        noise the derived Q follows.
     t : (n,) s
-        Epochs; the filter starts at ``t[0]`` (update with ``z[0]``), then predicts and
-        updates at every epoch.
+        Epochs; the filter starts at its start epoch (:func:`prepare`; ``t[0]`` for the
+        ``given`` and ``triangulated`` starts), then predicts and updates at every epoch.
     z : (n, N, 9) array
         Per feature ``[u_R, v_R, u_L, v_L, u_L - u_R, du_R, dv_R, du_L, dv_L]`` (rad, rad/s),
         NaN where not available (that component is not used; an epoch with none is a
         prediction only).
     R_diag : (n, N, 9) array
-        Variance of each component of ``z`` (rad^2, rad^2/s^2); NaN = not available.
+        Variance of each component of ``z`` (rad^2, rad^2/s^2); NaN = not available. The flow
+        variances are replaced by the derived ``sigma_o^2`` unless it is set explicitly.
     variant : 'additive' or 'mult'
     tuning : KabirTuning, optional
         Default: ``parse_tuning(scenario.estimator.tuning)``.
     geom : KabirGeometry, optional
         Default: :func:`geometry` ``(scenario, t)``.
     x0, P0 : arrays, optional
-        Initial state and covariance (24x24 additive, 23x23 mult); default
-        :func:`initial_state`.
+        Initial state and covariance (24x24 additive, 23x23 mult) at ``t[0]``, replacing the
+        start's.
+    prepared : Prepared, optional
+        :func:`prepare`'s result, if already made (ukf-gp).
 
     Returns
     -------
@@ -363,23 +442,28 @@ def run_ukf(
     if z.shape != (len(t), N, 9) or R_diag.shape != z.shape:
         raise ValueError(f"z and R_diag must have shape (n, N, 9) = ({len(t)}, N, 9)")
     geom = geom if geom is not None else geometry(scenario, t)
-    if x0 is None or P0 is None:
-        x0_, P0_ = initial_state(scenario, t, z, geom, tun, variant)
-        x0 = x0_ if x0 is None else x0
-        P0 = P0_ if P0 is None else P0
+    prep = prepared if prepared is not None else prepare(scenario, t, z, R_diag, geom, tun)
+    st = prep.start
+    k0, skip = st.k0, st.info.get("init") == "identified"
+    if x0 is None:
+        x0 = st.x0
+    if P0 is None:
+        P0 = error_to_filter_cov(np.asarray(x0), st.P0_err, variant)
     n = len(t)
     steps = UKFSteps(
-        model=_UKFModel.make(np.asarray(P0).shape[-1], N, geom, tun, variant),
+        model=_UKFModel.make(np.asarray(P0).shape[-1], N, geom, prep.tuning, variant),
         t=t,
         z=z.reshape(n, 9 * N),
-        Rv=R_diag.reshape(n, 9 * N),
+        Rv=prep.R_diag.reshape(n, 9 * N),
         x0=np.asarray(x0, dtype=float),
         P0=np.asarray(P0, dtype=float),
         layout=_filter_layout(N, variant),
+        k0=k0,
+        skip_first=skip,
     )
     r = fold(steps, t)
     stopped = np.flatnonzero(np.isfinite(r.x[:-1, 0]) & ~np.isfinite(r.x[1:, 0])) + 1
-    usable = np.isfinite(z) & np.isfinite(R_diag)
+    usable = np.isfinite(z) & np.isfinite(prep.R_diag)
     res = {
         "x": r.x[None],
         "P": r.P[None],
@@ -390,11 +474,17 @@ def run_ukf(
         "repairs": np.array([r.skipped.get("covariance_repairs", 0)]),
         "usable": usable[None],
     }
-    return _history(t, res, 0, variant, tun, np.asarray(x0))
+    return _history(t, res, 0, variant, prep.tuning, np.asarray(x0), prep)
 
 
 def _history(
-    t: Array, res: dict[str, Any], b: int, variant: Variant, tun: KabirTuning, x0: Array
+    t: Array,
+    res: dict[str, Any],
+    b: int,
+    variant: Variant,
+    tun: KabirTuning,
+    x0: Array,
+    prep: Prepared | None = None,
 ) -> EstimateHistory:
     """Run ``b`` of a :func:`_filter` result as an :class:`EstimateHistory` (the covariance
     as the 23-dim error-state covariance for both variants)."""
@@ -416,6 +506,14 @@ def _history(
             "diverged_at_s": float(t[div]) if div >= 0 else None,
             "tuning": tun.model_dump(),
             "x0": x0,
+            # the principal frame is the state's body frame: its axes are labelled by
+            # ascending moments (k1 < 0 < k2, canonical_axes) and its signs are the start's;
+            # an estimate is defined up to the principal axes' sign flips (and relabelling
+            # where two moments are close)
+            "symmetry": "principal_axes",
+            "start": dict(prep.start.info) if prep is not None else {},
+            "derived_tuning": dict(prep.derived) if prep is not None else {},
+            "warnings": list(prep.warnings) if prep is not None else [],
         },
     )
 
@@ -429,3 +527,92 @@ def _skipped(usable: NDArray[np.bool_], res: dict, b: int) -> dict[str, int]:
         "diverged": int(res["diverged_at"][b] >= 0),
         "covariance_repairs": int(res["repairs"][b]),
     }
+
+
+# --- the principal axes' labelling (tumblenav default; issue 18) ----------------------------
+
+
+def _axes_map(k: Array) -> tuple[Array, Array] | None:
+    """For log-ratios ``k`` whose moments ``[e^k1, 1, e^k2]`` are not ascending: the proper
+    signed permutation ``S`` (T' = S T) that sorts them, and the (2, 2) map of ``k``; None
+    when already ascending."""
+    logm = np.array([k[0], 0.0, k[1]])
+    order = np.argsort(logm, kind="stable")
+    if np.array_equal(order, [0, 1, 2]):
+        return None
+    S = np.zeros((3, 3))
+    S[np.arange(3), order] = 1.0
+    if np.linalg.det(S) < 0:
+        S[1] *= -1.0  # the middle axis flips: a proper rotation
+    # log m' = Pi log m; k' = [log m'_0 - log m'_1, log m'_2 - log m'_1] (log m_1 = 0)
+    Pi = np.abs(S)
+    D = np.array([[1.0, -1.0, 0.0], [0.0, -1.0, 1.0]]) @ Pi  # (2, 3) on [k1, 0, k2]
+    return S, D[:, [0, 2]]
+
+
+def canonical_axes(x: Array, P: Array, additive: bool) -> tuple[Array, Array]:
+    """Relabel the principal axes of the runs (B) whose moments are confidently not ascending
+    (``k1 < 0 < k2`` violated by more than 3 sigma of the difference: near a tie, e.g. from
+    the paper's ``k = 0`` start, the labelling is left alone): the same physical estimate in
+    the canonical labelling, with its covariance mapped exactly (every block is linear in the
+    relabelling)."""
+    o = 7 if additive else 6
+    for b in np.flatnonzero((x[:, 7] > 0) | (x[:, 8] < 0) | (x[:, 7] > x[:, 8])):
+        if not np.all(np.isfinite(x[b, 7:9])):
+            continue
+        Ck = P[b, o : o + 2, o : o + 2]
+        # the three differences log m_i - log m_j (log m = [k1, 0, k2]) and their sigmas
+        d = np.array([x[b, 7], -x[b, 8], x[b, 7] - x[b, 8]])
+        var = np.array([Ck[0, 0], Ck[1, 1], Ck[0, 0] + Ck[1, 1] - 2 * Ck[0, 1]])
+        if not np.any(d > 3.0 * np.sqrt(np.maximum(var, 0.0))):
+            continue
+        m = _axes_map(x[b, 7:9])
+        if m is None:
+            continue
+        S, Dk = m
+        qS = rot.matrix_to_quat(S)
+        xb = x[b].copy()
+        xb[0:3] = S @ x[b, 0:3]
+        xb[3:7] = rot.quat_multiply(qS, x[b, 3:7])
+        xb[7:9] = Dk @ x[b, 7:9]
+        xb[9:] = (x[b, 9:].reshape(-1, 3) @ S.T).ravel()
+        d = P.shape[-1]
+        G = np.zeros((d, d))
+        G[0:3, 0:3] = S
+        if additive:
+            Lq = rot.quat_multiply(qS, np.eye(4))  # q' = qS (x) q, linear in q: (4 j, 4)
+            G[3:7, 3:7] = Lq.T
+            o = 7
+        else:
+            G[3:6, 3:6] = S
+            o = 6
+        G[o : o + 2, o : o + 2] = Dk
+        nf = (d - o - 2) // 3
+        for i in range(nf):
+            a = o + 2 + 3 * i
+            G[a : a + 3, a : a + 3] = S
+        x = x.copy()
+        P = P.copy()
+        x[b] = xb
+        P[b] = G @ P[b] @ G.T
+    return x, P
+
+
+# Once ukf-mult's attitude is lost (1-sigma beyond ~100 deg) its rotation-vector sigma points
+# wrap around and the weighted means stop meaning anything (the rate diverged to 1e5 deg/s
+# through Kabir's long occlusions): the attitude block is held at that size, its
+# correlations scaled alike (tumblenav default).
+_MAX_ATTITUDE_SIGMA = np.radians(100.0)
+
+
+def _cap_attitude(P: Array) -> Array:
+    lam = np.linalg.eigvalsh(P[:, 3:6, 3:6])[:, -1]
+    over = lam > _MAX_ATTITUDE_SIGMA**2
+    if not over.any():
+        return P
+    P = P.copy()
+    for b in np.flatnonzero(over):
+        s = np.ones(P.shape[-1])
+        s[3:6] = _MAX_ATTITUDE_SIGMA / np.sqrt(lam[b])
+        P[b] = P[b] * np.outer(s, s)
+    return P

@@ -67,5 +67,8 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
         flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
     z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
     sp, sd = projection_sigmas(tun, meas)
-    var = np.array([sp**2] * 4 + [sd**2] + [tun.sigma_flow_rad_s**2] * 4)
+    so = tun.sigma_flow_rad_s
+    if so is None:  # derived later (filter.prepare); meanwhile the sensor noise through eq. 27
+        so = float(np.sqrt(130.0 / 144.0)) * sp / float(dts[0])
+    var = np.array([sp**2] * 4 + [sd**2] + [so**2] * 4)
     return z, np.broadcast_to(var, z.shape).copy()

@@ -18,6 +18,7 @@ from pydantic import (
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import nest_front_end_keys
 from tumblenav.estimators.base import parse_tuning as base_parse_tuning
+from tumblenav.frontends import projections as proj
 from tumblenav.frontends.projections import ProjectionsTuning
 from tumblenav.settings_rules import positive_or_rule
 
@@ -54,12 +55,35 @@ class KabirTuning(BaseModel):
         max_length=3,
         description="its constant velocity in L, m/s (Kabir 2025: an inertially fixed CM)",
     )
-    init: Literal["triangulated", "given"] = Field(
-        "triangulated",
-        description="'triangulated': from the first epochs' measurements alone (q = identity, "
-        "features triangulated, omega from the optical flow, k = 0); 'given': init_omega_rad_s, "
-        "init_q_TI, init_features_m (the kabir2025 recipe gives Kabir 2025 Sec. 3.2's "
-        "truth-based guess this way: tumblenav.papers.kabir2025.paper_start)",
+    init: Literal["identified", "triangulated", "given"] = Field(
+        "identified",
+        description="'identified' (tumblenav default): from the measurements alone -- the "
+        "feature set's attitude by Kabsch on triangulated points, its rate, the inertia and "
+        "principal frame by Hu 2024 eq. 13's least squares over a window grown until the frame "
+        "is known to init_frame_sigma_rad; the filter starts at the end of that window with "
+        "the identification's own covariance; 'triangulated': at t0 with q = identity, features "
+        "triangulated, omega from the optical flow, k = 0 (the frame is unknown: "
+        "init_attitude_sigma_rad); 'given': init_omega_rad_s, init_q_TI, init_features_m "
+        "(the kabir2025 recipe gives Kabir 2025 Sec. 3.2's truth-based guess this way: "
+        "tumblenav.papers.kabir2025.paper_start)",
+    )
+    init_frame_sigma_rad: float = Field(
+        0.05,
+        gt=0,
+        description="'identified' start: the window grows until the principal frame's 1-sigma "
+        "(largest axis) is below this (rad)",
+    )
+    init_max_window_s: float | None = Field(
+        None,
+        gt=0,
+        description="'identified' start: the longest window (s); default: the first run of "
+        "observations",
+    )
+    init_attitude_sigma_rad: float = Field(
+        1.0,
+        gt=0,
+        description="'triangulated' start: 1-sigma of the attitude (per axis, rad): q = "
+        "identity knows nothing of the principal frame (the features' covariance follows it)",
     )
     init_omega_rad_s: list[float] = Field(
         [0.0, 0.0, 0.0], min_length=3, max_length=3, description="given init: omega_TI_T"
@@ -77,8 +101,17 @@ class KabirTuning(BaseModel):
     p0_quat_var: float = Field(0.04, gt=0, description="per quaternion component")
     p0_k_var: float = Field(0.01, gt=0, description="initial variance of each log-ratio k")
     p0_feature_var: float = Field(2.25, gt=0, description="m^2")
-    q_omega_var: float = Field(2.5e-9, ge=0, description="rad^2/s^2 per step")
-    q_quat_var: float = Field(4e-10, ge=0, description="per quaternion component per step")
+    q_omega_var: float | None = Field(
+        None,
+        ge=0,
+        description="rad^2/s^2 per step; default (null): derived from the scenario's "
+        "process_noise.rotational_rad2_s4 and the sample interval (derive_tuning)",
+    )
+    q_quat_var: float | None = Field(
+        None,
+        ge=0,
+        description="per quaternion component per step; default (null): derived (derive_tuning)",
+    )
     q_k_var: float = Field(3.6e-5, ge=0, description="per step")
     q_feature_var: float = Field(1e-6, ge=0, description="m^2 per step")
     sigma_p_rad: float | Literal["sensor"] = Field(
@@ -89,12 +122,13 @@ class KabirTuning(BaseModel):
     sigma_d_rad: float | Literal["sigma_p"] = Field(
         "sigma_p", description="disparity noise (rad); 'sigma_p': the same as sigma_p_rad"
     )
-    sigma_flow_rad_s: float = Field(
-        1e-5,
+    sigma_flow_rad_s: float | None = Field(
+        None,
         gt=0,
-        description="optical flow noise sigma_o; note that eq. 27's truncation error at 1 Hz "
-        "is ~3e-3 to 6e-3 rad/s at Kabir's tumbling rates, far above the paper's sigma_o "
-        "(docs/results/kabir2025.md)",
+        description="optical flow noise sigma_o (rad/s); default (null): derived from the "
+        "sensor noise through eq. 27 and eq. 27's truncation error at the estimator's own "
+        "initial rate and geometry (derive_tuning); the paper's per-frequency values: "
+        "paper_tuning",
     )
     frontend: ProjectionsTuning = Field(
         default_factory=ProjectionsTuning,
@@ -134,3 +168,132 @@ def paper_tuning(f_T_hz: float) -> dict[str, float]:
         f"Kabir 2025 tunes only f_T = {', '.join(map(str, _PAPER_PER_FREQUENCY))} Hz; "
         f"got {f_T_hz:g} Hz"
     )
+
+
+# --- tuning that follows the scenario (tumblenav default; issue 18) -------------------------
+
+# Kabir 2025 eq. 27's five-point stencil applied to independent samples of noise sigma_p:
+# var = sigma_p^2 (1 + 64 + 64 + 1) / (144 dt^2).
+_STENCIL_NOISE_GAIN = np.sqrt(130.0 / 144.0)
+# An explicit setting further than this factor from the derived value draws a warning.
+_FAR = 10.0
+
+
+def flow_truncation_rms(
+    omega_C: Array, rho_C: Array, rho0_C: Array, centres_x: Array, dt: float, phases: int = 24
+) -> float:
+    """RMS truncation error (rad/s) of Kabir 2025 eq. 27's fourth-order stencil on the
+    projections of features ``rho_C`` (N, 3) of a body turning at the constant ``omega_C``
+    about ``rho0_C`` (tumblenav default: how the flow's ``sigma_o`` follows the scenario).
+
+    Each feature is turned about ``omega_C`` through ``phases`` phases of one turn; at each the
+    stencil ``(-w(t+2dt) + 8 w(t+dt) - 8 w(t-dt) + w(t-2dt)) / (12 dt)`` of the exact
+    projections is compared with the exact flow ``A omega`` (eq. 18-21): the error is
+    ``w^(5) dt^4 / 30 + ...``, i.e. for a projection swinging with amplitude ``a`` at the
+    angular rate ``|omega|``, ``a |omega| g(|omega| dt)`` with
+    ``g(x) = 1 - (8 sin x - sin 2x) / (6 x) ~ x^4 / 30``; computed here exactly, with the
+    perspective and the rig, rather than by that one-harmonic estimate.
+    """
+    omega_C = np.asarray(omega_C, dtype=float)
+    rho = np.asarray(rho_C, dtype=float)
+    rho0 = np.asarray(rho0_C, dtype=float)
+    wn = float(np.linalg.norm(omega_C))
+    if not wn > 0 or len(rho) == 0:
+        return 0.0
+    from tumblenav import rotations as rot
+
+    period = 2.0 * np.pi / wn
+    s = np.arange(phases) * period / phases  # (P,)
+    j = np.arange(-2, 3) * dt  # (5,)
+    ang = (s[:, None] + j[None, :])[..., None] * omega_C  # (P, 5, 3)
+    R = rot.exp_map(ang)  # (P, 5, 3, 3)
+    r = np.einsum("pjab,nb->pjna", R, rho - rho0)  # (P, 5, N, 3)
+    h = proj.kabir_h(r + rho0, rho0, omega_C, centres_x)  # (P, 5, N, 9)
+    w = h[..., 0:4]
+    stencil = (-w[:, 4] + 8.0 * w[:, 3] - 8.0 * w[:, 1] + w[:, 0]) / (12.0 * dt)
+    err = stencil - h[:, 2, :, 5:9]
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def rk4_attitude_error(omega_norm: float, dt: float) -> float:
+    """Attitude error (rad) per step of RK4 on the quaternion kinematics at the rate
+    ``|omega|`` (the phase error of the fourth-order Taylor polynomial of ``exp(i x)``,
+    ``x = |omega| dt / 2``, doubled): ``~ (|omega| dt)^5 / 1920``."""
+    x = 0.5 * omega_norm * dt
+    return float(2.0 * abs(x - np.arctan2(x - x**3 / 6.0, 1.0 - x**2 / 2.0 + x**4 / 24.0)))
+
+
+def derive_tuning(
+    omega_T: Array,
+    k: Array,
+    omega_C: Array,
+    rho_C: Array,
+    rho0_C: Array,
+    centres_x: Array,
+    dt: float,
+    sigma_p: float,
+    rotational_psd: float,
+) -> dict[str, float]:
+    """Q and ``sigma_o`` from what the estimator knows (tumblenav default, issue 18).
+
+    Parameters: its initial rate ``omega_T`` (rad/s, in T) and log-ratios ``k``, the same rate
+    in C and the features' positions in C (m) with the known mass centre ``rho0_C``, the
+    rig, the sample interval ``dt`` (s), the projection noise ``sigma_p`` (rad) and the
+    scenario's ``process_noise.rotational_rad2_s4`` (q_r, rad^2/s^3: white angular
+    acceleration about the first principal axis, isotropic torque).
+
+    * ``q_omega_var = q_r (I_1/I_i)^2 dt``, the largest over the three axes (a random walk of
+      the rate over one step; ``I_1`` of the first axis, the ratios from ``k``).
+    * ``q_quat_var``: the attitude's share of the same random walk over one step,
+      ``q_r dt^3 / 3`` rad^2, plus the RK4 propagation's own error squared
+      (:func:`rk4_attitude_error` after the substeps of ``propagate_rotation``), mapped to
+      one quaternion component (``dq = dtheta / 2``: a quarter).
+    * ``sigma_flow_rad_s``: the sensor noise through eq. 27's stencil,
+      ``sigma_p sqrt(130/144) / dt``, and eq. 27's truncation error
+      (:func:`flow_truncation_rms`) at the initial rate and geometry, added in quadrature.
+    """
+    m = np.exp(np.array([k[0], 0.0, k[1]], dtype=float))
+    ratio2 = float(np.max((m[0] / m) ** 2))
+    q_omega = rotational_psd * ratio2 * dt
+    wn = float(np.linalg.norm(omega_T))
+    from tumblenav.estimators.kabir2025.model import rk4_substeps
+
+    n_sub = rk4_substeps(wn, dt)
+    rk4 = n_sub * rk4_attitude_error(wn, dt / n_sub)
+    q_att = rotational_psd * ratio2 * dt**3 / 3.0 + rk4**2
+    trunc = flow_truncation_rms(omega_C, rho_C, rho0_C, centres_x, dt)
+    noise = _STENCIL_NOISE_GAIN * sigma_p / dt
+    return {
+        "q_omega_var": float(q_omega),
+        "q_quat_var": float(q_att / 4.0),
+        "sigma_flow_rad_s": float(np.hypot(noise, trunc)),
+        "flow_noise_rad_s": float(noise),
+        "flow_truncation_rad_s": float(trunc),
+    }
+
+
+def resolve_tuning(tun: KabirTuning, derived: dict[str, float]) -> tuple[KabirTuning, list[str]]:
+    """``tun`` with every unset (null) Q / sigma_o key replaced by its derived value, and a
+    warning for each explicit one more than 10x from what the scenario implies."""
+    keys = ("q_omega_var", "q_quat_var", "sigma_flow_rad_s")
+    warnings_: list[str] = []
+    update = {}
+    for key in keys:
+        given = getattr(tun, key)
+        want = derived[key]
+        if given is None:
+            update[key] = want
+            continue
+        if want > 0 and given > 0:
+            r = given / want
+            if r > _FAR or r < 1.0 / _FAR:
+                warnings_.append(
+                    f"estimator.tuning.{key} = {given:.3g} is {r:.3g}x what the scenario implies "
+                    f"({want:.3g}: derived from the initial rate, dt, process_noise and eq. 27's "
+                    "truncation error); leave it unset to use the derived value"
+                )
+        elif want > 0 and given == 0 or (given > 0 and want == 0 and key != "sigma_flow_rad_s"):
+            warnings_.append(
+                f"estimator.tuning.{key} = {given:.3g} where the scenario implies {want:.3g}"
+            )
+    return tun.model_copy(update=update), warnings_

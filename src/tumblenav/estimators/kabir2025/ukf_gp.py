@@ -25,6 +25,7 @@ three of the fitted long periods (Kabir 2025 Sec. 3.1: ``T_train >= 3 T_p``) giv
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Literal
@@ -126,7 +127,9 @@ def pseudo_measurements(
         mean, var = m.predict(t)  # (n, 3) [u_R, v_R, u_L]
         w4 = np.concatenate([mean, mean[:, 1:2]], axis=1)  # v_L = v_R (Kabir 2025 eq. 16-17)
         flow = proj.finite_difference_rate(w4, dt)  # eq. 27 over the whole predicted series
-        if tun.frontend.flow_edges == "drop":  # as for measured flows: only where eq. 27 is 4th order
+        if (
+            tun.frontend.flow_edges == "drop"
+        ):  # as for measured flows: only where eq. 27 is 4th order
             flow = np.where(proj.finite_difference_order(w4) == 4, flow, np.nan)
         zi = np.concatenate([w4, mean[:, 2:3] - mean[:, 0:1], flow], axis=1)
         z[missing, i, :] = zi[missing]
@@ -137,7 +140,7 @@ def pseudo_measurements(
                     v,
                     v[:, 1:2],
                     v[:, 0:1] + v[:, 2:3],
-                    np.full((len(t), 4), tun.sigma_flow_rad_s**2),
+                    np.full((len(t), 4), (tun.sigma_flow_rad_s or 0.0) ** 2),
                 ],
                 axis=1,
             )
@@ -200,8 +203,14 @@ class KabirUKFGP:
                     "3 T_p for reliable long predictions",
                     stacklevel=2,
                 )
-        zp, Rp, fallback = pseudo_measurements(t, z, R, models, tun, sigma_p)
-        hist = ukf_filter.run_ukf(scenario, t, zp, Rp, tun.variant, tun, geom)
+        prep = ukf_filter.prepare(scenario, t, z, R, geom, tun)
+        tun_r = prep.tuning
+        assert isinstance(tun_r, UKFGPTuning)
+        zp, Rp, fallback = pseudo_measurements(t, z, prep.R_diag, models, tun_r, sigma_p)
+        prep = dataclasses.replace(prep, R_diag=Rp)
+        hist = ukf_filter.run_ukf(scenario, t, zp, Rp, tun.variant, tun_r, geom, prepared=prep)
+        for line in prep.warnings:
+            warnings.warn(line, stacklevel=2)
         hist.skipped["gp_fallback_features"] = len(fallback)
         hist.info["gp"] = summaries
         hist.info["gp_fallback"] = fallback
