@@ -24,6 +24,8 @@ from tumblenav.frontends.planes import (
     RECTANGLE_SYMMETRIES,
     distribution_matrix,
     extract_planes,
+    in_window,
+    ray_footprint_weights,
     rectangle_frame,
     rectangle_sides,
     side_mismatch,
@@ -62,17 +64,29 @@ def pose_fixes(
     if len(pts) < max(3, min_points):
         return [], [f"only {len(pts)} finite points"]
     fixes, skipped = [], []
-    for plane in extract_planes(pts, threshold_m, rng, min_points=min_points):
-        dist = distribution_matrix(pts[plane.inliers])
+    planes = extract_planes(pts, threshold_m, rng, min_points=min_points)
+    for plane, members in zip(
+        planes, _nearest_plane_members(pts, planes, threshold_m), strict=True
+    ):
+        if members.sum() < max(3, min_points):
+            continue
+        inl = pts[members]
+        # the area centroid: each return weighted by its ray's footprint on the plane
+        dist = distribution_matrix(inl, ray_footprint_weights(inl, plane.normal))
         b, a, _ = rectangle_sides(dist.eigenvalues, sigma_m)
         rects = _matches(model, b, a, rel_tol)
         if not rects:
             skipped.append(
-                f"plane of {plane.n_inliers} points, sides {b:.3f} x {a:.3f} m: "
+                f"plane of {int(members.sum())} points, sides {b:.3f} x {a:.3f} m: "
                 "no known rectangle (other surface, or seen in part)"
             )
             continue
+        keep = _rectangle_points(inl, plane, rects[0].sides_m, threshold_m)
+        if not np.all(keep) and keep.sum() >= 3:
+            inl = inl[keep]
+            dist = distribution_matrix(inl, ray_footprint_weights(inl, plane.normal))
         R_SP = rectangle_frame(dist)
+        centre = dist.centroid
         # candidates: every rectangle with these sides x the four symmetric frames (Fig. 2);
         # the prediction picks the closest attitude (eq. 21-25), faces of equal size included
         cands = [(r, R_SP @ S @ r.R_MP.T) for r in rects for S in RECTANGLE_SYMMETRIES]
@@ -87,15 +101,62 @@ def pose_fixes(
             PoseFix(
                 rect.name,
                 R_SM,
-                dist.centroid - R_SM @ rect.centre_M,
-                plane.n_inliers,
+                centre - R_SM @ rect.centre_M,
+                len(inl),
                 (b, a),
                 R_SM_predicted is None,
-                tuple((R, dist.centroid - R @ r.centre_M) for r, R in cands),
+                tuple((R, centre - R @ r.centre_M) for r, R in cands),
                 rect.R_MP,
             )
         )
     return fixes, skipped
+
+
+def _nearest_plane_members(pts: Array, planes: list, threshold_m: float) -> list:
+    """Each plane's points (tumblenav default): those within ``threshold_m`` of it, less the
+    ones that lie nearer to another extracted plane *and* next to that plane's own points.
+
+    RANSAC's consensus set of the first plane also holds the strip of every adjacent face
+    within the threshold of their common edge (1-2% of its points, at one edge: several mm
+    of centroid bias on Yu's satellite); on that face they lie on its own plane, within the
+    noise, and continue its points, so they go back to it. A plane that merely crosses the
+    first one (a panel's plane through the middle of a bus face) has no points there and
+    takes none."""
+    if not planes:
+        return []
+    from scipy.spatial import cKDTree
+
+    D = np.abs(pts @ np.array([p.normal for p in planes]).T + np.array([p.d for p in planes]))
+    slab = D < threshold_m
+    nearest = np.argmin(D, axis=1)
+    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
+    reach = 2.0 * spacing + threshold_m
+    members = [slab[:, j].copy() for j in range(len(planes))]
+    for j in range(len(planes)):
+        for k in range(len(planes)):
+            if k == j:
+                continue
+            moved = slab[:, j] & (nearest == k)
+            own_k = slab[:, k] & ~slab[:, j]
+            if not moved.any() or not own_k.any():
+                continue
+            d, _ = cKDTree(pts[own_k]).query(pts[moved], distance_upper_bound=reach)
+            idx = np.flatnonzero(moved)[np.isfinite(d)]
+            members[j][idx] = False
+    return members
+
+
+def _rectangle_points(
+    pts: Array, plane, sides_m: tuple[float, float], threshold_m: float
+) -> NDArray[np.bool_]:
+    """The plane's points that lie within one window of the known sides along each in-plane
+    axis (:func:`tumblenav.frontends.planes.in_window`; tumblenav default)."""
+    dist = distribution_matrix(pts, ray_footprint_weights(pts, plane.normal))
+    R_SP = rectangle_frame(dist)
+    keep = np.ones(len(pts), dtype=bool)
+    for axis, side in zip((0, 1), sorted(sides_m), strict=True):
+        keep &= in_window((pts - dist.centroid) @ R_SP[:, axis], side + 2.0 * threshold_m)
+    return keep
 
 
 def _matches(model: TargetModel, b: float, a: float, rel_tol: float) -> list:
@@ -118,6 +179,22 @@ def consistent_start(fixes: list[PoseFix]) -> tuple[Array, Array]:
         if s < score:
             best, score = (R, p), s
     return best
+
+
+def start_disagreement(fixes: list[PoseFix], R_SM: Array, p_MinS: Array) -> tuple[float, float]:
+    """How far the other rectangles of a scan are from a start pose: the largest, over the
+    fixes, of the smallest attitude angle (rad) and origin distance (m) to any of a fix's
+    candidates (0, 0 for one fix). A plane taken for the wrong rectangle gives a pose the
+    others do not share."""
+    angle, dist = 0.0, 0.0
+    for fx in fixes:
+        a = min(
+            float(np.arccos(np.clip((np.trace(R_SM.T @ R) - 1) / 2, -1.0, 1.0)))
+            for R, _ in fx.candidates
+        )
+        d = min(float(np.linalg.norm(p - p_MinS)) for _, p in fx.candidates)
+        angle, dist = max(angle, a), max(dist, d)
+    return angle, dist
 
 
 def model_symmetries(rectangles) -> list[Array]:

@@ -22,6 +22,7 @@ axis) get a Schmidt (consider) update, so the EKF does not learn them from its o
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -37,7 +38,7 @@ from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.estimators.yu2019.filter import DepthSteps
 from tumblenav.estimators.yu2019.model import LAYOUT
-from tumblenav.estimators.yu2019.tuning import DepthTuning
+from tumblenav.estimators.yu2019.tuning import DepthTuning, process_noise
 from tumblenav.measurements import DEPTH_CLOUDS
 
 Array = NDArray[np.float64]
@@ -69,6 +70,7 @@ class DepthEKF:
                 "ekf-depth needs the target's geometry model (Yu 2019 recognises its "
                 "rectangles): give target.model in the scenario"
             )
+        q_rot, q_trans = process_noise(tun, scenario.process_noise)
         steps = DepthSteps(
             model=from_config(scenario.target_model),
             meas=meas,
@@ -76,6 +78,8 @@ class DepthEKF:
             sigma=scenario.sensor.range_noise_m,
             n_orbit=scenario.chaser.orbit.mean_motion_rad_s if scenario.chaser.orbit else 0.0,
             rng=rng,
+            q_rot=q_rot,
+            q_trans=q_trans,
         )
         r = fold(steps, meas.t)
         skipped = {
@@ -83,8 +87,20 @@ class DepthEKF:
             "gated_out": 0,
             "ambiguous_start": 0,
             "nonphysical_inertia": 0,
+            "nonphysical_rate": 0,
+            "reinitialised": 0,
             **r.skipped,
         }
+        restarts = list(r.memo[1]) if r.memo is not None else []
+        if restarts:
+            warnings.warn(
+                f"ekf-depth lost track {len(restarts)} time(s) (every rectangle fix gated "
+                f"out for {tun.reinit_after_gated} epochs in a row) and started again at "
+                f"t = {', '.join(f'{t:g}' for t in restarts[:5])}"
+                f"{' ...' if len(restarts) > 5 else ''} s: the estimates before each restart "
+                "were off track",
+                stacklevel=2,
+            )
         return EstimateHistory(
             t=meas.t,
             x=r.x,
@@ -93,7 +109,11 @@ class DepthEKF:
             nis=r.nis,
             nis_dof=r.nis_dof,
             skipped=skipped,
-            info={"convention": "yu2019", "symmetries": steps.symmetries},  # evaluation
+            info={
+                "convention": "yu2019",
+                "symmetries": steps.symmetries,  # evaluation: the model's symmetric frames
+                "reinit_times_s": restarts,  # restarts after the run lost track
+            },
         )
 
 

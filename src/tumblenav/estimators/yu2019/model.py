@@ -75,11 +75,14 @@ def inertia_matrix(l: Array) -> Array:
 
 
 def physical_inertia(l: Array) -> bool:
-    """True when the ratios of eq. 29 give a positive definite inertia (all principal moments
-    above 1e-3 of Ixx); with a zero or negative moment the Euler equations explode."""
+    """True when the ratios of eq. 29 give a physical inertia: positive definite (all
+    principal moments above 1e-3 of Ixx; with a zero or negative moment the Euler equations
+    explode) and the principal moments obey the triangle inequality (the two smaller sum to
+    at least the largest, as for any rigid body: the scenario checks the same of the truth)."""
     if not np.all(np.isfinite(l)):
         return False
-    return bool(np.linalg.eigvalsh(inertia_matrix(l))[0] > 1e-3)
+    m = np.linalg.eigvalsh(inertia_matrix(l))
+    return bool(m[0] > 1e-3 and m[0] + m[1] >= m[2] * (1 - 1e-9))
 
 
 def euler_full(w: Array, l: Array) -> Array:
@@ -128,10 +131,39 @@ def unexcited_ratios(w: Array, l: Array, P_w: Array, k: float = 4.0) -> NDArray[
     return np.sum(C * C, axis=0) <= k * noise
 
 
-def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Array, Array]:
+def spin_axis_fixed(
+    w: Array,
+    l: Array,
+    unexcited: NDArray[np.bool_],
+    P_w: Array | None = None,
+    max_nutation: float = 0.05,
+) -> bool:
+    """True for a spin whose axis stays put in T (tumblenav default): three ratios unexcited
+    (:func:`unexcited_ratios`: a spin about a principal axis), or the axis turning in T
+    (eq. 28's ``omega'``) at below ``max_nutation`` of the spin, ``max_nutation |omega|^2``,
+    plus 3 sigma of what the rate's own covariance ``P_w`` makes of ``omega'``."""
+    wn = float(np.linalg.norm(w))
+    if wn == 0.0 or not physical_inertia(l):
+        return False
+    if unexcited.sum() >= 3:
+        return True
+    wdot = euler_full(w, l)
+    noise = 0.0
+    if P_w is not None:
+        J = rotational_F(w, l)[_E_RATE, _E_RATE]
+        noise = float(np.trace(J @ P_w @ J.T))
+    return bool(wdot @ wdot < (max_nutation * wn**2) ** 2 + 9.0 * noise)
+
+
+def _propagate(
+    x: Array, P: Array, dt: float, n: float, q_c: float, q_t: float | None = None
+) -> tuple[Array, Array]:
     """Predict over ``dt``: RK4 of the attitude and rate (Yu 2019 eq. 28 with the quaternion
     kinematics), the Hill model (eq. 26-27) for ``[r, v]``, and ``P`` through the discretised
-    error dynamics (series of Hu 2024 eq. 38-39)."""
+    error dynamics (series of Hu 2024 eq. 38-39). With ``q_t`` None: Yu's single Q, ``q_c`` on
+    every rate axis and on the mass centre's acceleration; otherwise the scenario's process
+    noise, ``q_c`` the rotational density (an isotropic torque, :func:`_Qc_rot` at the
+    estimated ratios) and ``q_t`` the translational one (m^2/s^3)."""
     q, w, l = x[_X_ATT], x[_X_RATE], x[_X_INERTIA]
 
     def f(q_, w_):
@@ -141,8 +173,9 @@ def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Arr
     x = x.copy()
     x[_X_ATT] = q_new / np.linalg.norm(q_new)
     x[_X_RATE] = w_new
-    Phr, Qr = discretise(rotational_F(w, l), _Qc_rot(q_c), dt)
-    Pht, Qt = cw_discrete(n, q_c, dt)
+    Qc = _Qc_rot(q_c) if q_t is None else _Qc_rot(q_c, l)
+    Phr, Qr = discretise(rotational_F(w, l), Qc, dt)
+    Pht, Qt = cw_discrete(n, q_c if q_t is None else q_t, dt)
     x[_X_TRANS] = Pht @ x[_X_TRANS]
     Phi = np.eye(LAYOUT.dim)
     Phi[_E_ROT, _E_ROT] = Phr
@@ -153,9 +186,18 @@ def _propagate(x: Array, P: Array, dt: float, n: float, q_c: float) -> tuple[Arr
     return x, Phi @ P @ Phi.T + Qk
 
 
-def _Qc_rot(q_c: float) -> Array:
+def _Qc_rot(q_c: float, l: Array | None = None) -> Array:
+    """Spectral density of ``[dtheta, domega, dl]``. Without ``l``: ``q_c`` on every rate
+    axis (Yu 2019's single Q: w2 = disturbing torque / Ixx). With the ratios ``l`` (eq. 29):
+    an isotropic torque whose angular acceleration about the largest moment has density
+    ``q_c``, i.e. ``q_c I_max^2 I^-2`` in T (the scenario's process noise,
+    :mod:`tumblenav.dynamics.disturbances`; Hu 2024 eq. 22's J)."""
     Q = np.zeros((_E_ROT.stop, _E_ROT.stop))
-    Q[_E_RATE, _E_RATE] = q_c * np.eye(3)  # Yu 2019: w2 = disturbing torque / Ixx
+    if l is None or not physical_inertia(l):
+        Q[_E_RATE, _E_RATE] = q_c * np.eye(3)
+        return Q
+    lam, V = np.linalg.eigh(inertia_matrix(l))
+    Q[_E_RATE, _E_RATE] = q_c * (V * (lam[-1] / lam) ** 2) @ V.T
     return Q
 
 

@@ -49,7 +49,13 @@ class DepthTuning(BaseModel):
         description="with P0_sigma_inertia 'inertia_init' and inertia_init 'sphere' (a sphere "
         "is 0.3-0.5 off a typical satellite's ratios)",
     )
-    Q_diag: float = Field(1e-12, ge=0, description="process noise of the 6 disturbances")
+    Q_diag: float | Literal["scenario"] = Field(
+        "scenario",
+        description="spectral density of the 6 disturbances (Yu 2019's single Q: angular "
+        "acceleration about x in rad^2/s^3, the others x (Ixx/Iii)^2, and the mass centre's "
+        "acceleration in m^2/s^3); 'scenario': the scenario's process_noise "
+        "(rotational_rad2_s4 and translational_m2_s4, each its own)",
+    )
     frontend: PlanesTuning = Field(
         default_factory=PlanesTuning,
         description="the planes front end's settings (PlanesTuning)",
@@ -79,25 +85,43 @@ class DepthTuning(BaseModel):
         "true ratios with this on)",
     )
     position_noise_scale: float = Field(
-        4.0,
+        1.0,
         gt=0,
-        description="variance multiplier on each fix's first-order centroid covariance: the "
-        "centroid errors of a ray-cast scan are about 2x that variance across the short side "
-        "(0.03x along the long side, 1.1x along the normal) and correlated from scan to scan "
-        "(lag-1 0.5-0.8 at 1 Hz); 4 makes the translation consistent on the yu2019 runs "
-        "(docs/results/yu2019.md)",
+        description="variance multiplier on each fix's centre covariance (fixes."
+        "fix_covariance: the ray grid's edge phase, h^2/12 in the plane, inflated for its "
+        "scan-to-scan correlation, and sigma^2/n along the normal); 1 covers the measured "
+        "errors (docs/results/yu2019.md)",
     )
     attitude_noise_scale: float = Field(
-        1.5,
+        1.0,
         gt=0,
         description="variance multiplier on each fix's first-order attitude covariance "
-        "(measured 0.6, 1.7 and 0.02x that variance about the three axes, uncorrelated)",
+        "(measured 0.6, 0.8 and 0.04x that variance about the three axes, uncorrelated)",
     )
     consider_unexcited_ratios: bool = Field(
         True,
         description="Schmidt (consider) update for the inertia ratios whose effect on the "
         "dynamics the rate's own noise could produce (a spin about a principal axis): beyond "
         "Yu 2019, the EKF otherwise gains spurious information on them",
+    )
+    reinit_after_gated: int = Field(
+        5,
+        ge=1,
+        description="epochs in a row whose every rectangle fix the NIS gate rejects before "
+        "the run is taken as lost and started again from that epoch's fixes (tumblenav "
+        "default; counted in skipped['reinitialised'], times in info['reinit_times_s'])",
+    )
+    start_agreement_deg: float = Field(
+        10.0,
+        gt=0,
+        description="a (re)start needs the rectangles of its scan to agree on the attitude "
+        "within this angle (tumblenav default: a plane taken for the wrong rectangle does not)",
+    )
+    start_agreement_sides: float = Field(
+        0.1,
+        gt=0,
+        description="... and on the model origin within this fraction of the model's largest "
+        "rectangle side",
     )
     multi_solution_fix: bool = Field(
         True,
@@ -110,6 +134,16 @@ class DepthTuning(BaseModel):
     def _front_end_keys(cls, raw: Any) -> Any:
         """Front-end keys given at the top level (as before they moved) go to ``frontend``."""
         return nest_front_end_keys(raw, PlanesTuning)
+
+    @field_validator("Q_diag", mode="before")
+    @classmethod
+    def _q_number_or_rule(cls, v: Any) -> Any:
+        """A number >= 0, or 'scenario' (``null`` means 'scenario')."""
+        if v is None or v == "scenario":
+            return "scenario"
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+            raise ValueError(f"Q_diag must be a number >= 0 or 'scenario', got {v!r}")
+        return float(v)
 
     @field_validator("P0_sigma_inertia", mode="before")
     @classmethod
@@ -132,3 +166,14 @@ def _sigma_inertia(tun: DepthTuning) -> float:
 def plane_threshold(tun: DepthTuning, range_noise_m: float) -> float:
     """Inlier distance (m) of the RANSAC plane fits (:meth:`PlanesTuning.threshold`)."""
     return tun.frontend.threshold(range_noise_m)
+
+
+def process_noise(tun: DepthTuning, process_noise_cfg: Any) -> tuple[float, float | None]:
+    """``(q_rot, q_trans)`` of the filter's Q: the scenario's process-noise spectral densities
+    (``Q_diag: scenario``, the default), or ``(Q_diag, None)``: Yu 2019's single Q."""
+    if tun.Q_diag == "scenario":
+        return (
+            float(process_noise_cfg.rotational_rad2_s4),
+            float(process_noise_cfg.translational_m2_s4),
+        )
+    return float(tun.Q_diag), None
