@@ -280,6 +280,7 @@ def run_estimate(
         }
         summary["nees"] = metrics.consistency(r.nees[None], r.nees_dof, r.t, scenario.window_s)
         summary["nis"] = metrics.consistency(r.nis[None], r.nis_dof[None], r.t, scenario.window_s)
+        summary["branches"] = metrics.branch_counts([r.branch])
         if plots:
             assert x_true is not None  # r and x_true both come from the truth
             figures.plot_error_history(
@@ -464,6 +465,22 @@ def assess(summary: dict[str, Any]) -> list[str]:
         out.append("the filter diverged and was stopped: the estimates after that are NaN")
     if summary.get("runs_diverged"):
         out.append(f"{summary['runs_diverged']} of {runs} runs diverged and were stopped")
+    skipped = summary.get("skipped") or {}
+    reinit = summary.get("runs_reinitialised") or (1 if skipped.get("reinitialised") else 0)
+    if reinit:
+        out.append(
+            f"{reinit} of {runs} run(s) lost track and started again from the measurements "
+            "(the errors around each restart are in the window's RMSE)"
+        )
+    alarm = summary.get("runs_nis_alarm") or (1 if skipped.get("nis_alarm") else 0)
+    if alarm:
+        out.append(
+            f"{alarm} of {runs} run(s) raised the lost-track alarm (the innovations failed their "
+            "chi-square test over a window): the model does not fit those runs' measurements"
+        )
+    note = metrics.branch_warning(summary.get("branches"))
+    if note:
+        out.append(note)
     if summary.get("runs_failed"):
         out.append(
             f"{summary['runs_failed']} run(s) failed with an error (seeds and errors under "

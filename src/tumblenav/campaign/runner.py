@@ -544,6 +544,10 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
         if per_axis:  # mean and spread of each error component over runs and window epochs
             summary["per_axis"] = per_axis
         summary["runs_diverged"] = int(cons["diverged"].sum())
+        # runs that lost track and started again from the measurements (the estimator says so
+        # in its skipped counts), and runs whose innovations failed the lost-track alarm
+        for key, name in (("reinitialised", "runs_reinitialised"), ("nis_alarm", "runs_nis_alarm")):
+            summary[name] = int(sum(bool(x.get(f"skipped_{key}", 0)) for x in cons["extras"]))
         summary["nees"] = metrics.consistency(cons["nees"], cons["nees_dof"], t, window)
         summary["nis"] = metrics.consistency(cons["nis"], cons["nis_dof"], t, window)
         # runs per symmetric frame the truth was compared in (evaluation.alignment.align)
