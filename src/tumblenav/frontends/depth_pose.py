@@ -57,8 +57,11 @@ def pose_fixes(
     R_SM_predicted: Array | None = None,
     rel_tol: float = 0.08,
     min_points: int = 50,
+    p_MinS_predicted: Array | None = None,
 ) -> tuple[list[PoseFix], list[str]]:
-    """All rectangle fixes in one cloud, and why the other planes were skipped."""
+    """All rectangle fixes in one cloud, and why the other planes were skipped. With a
+    predicted origin ``p_MinS_predicted`` as well, candidates of equal attitude (faces of
+    equal size and orientation, e.g. two solar panels) are told apart by their origin."""
     pts = np.asarray(points_S, dtype=float)
     pts = pts[np.all(np.isfinite(pts), axis=1)] if pts.size else pts.reshape(0, 3)
     if len(pts) < max(3, min_points):
@@ -73,7 +76,17 @@ def pose_fixes(
         inl = pts[members]
         # the area centroid: each return weighted by its ray's footprint on the plane
         dist = distribution_matrix(inl, ray_footprint_weights(inl, plane.normal))
-        b, a, _ = rectangle_sides(dist.eigenvalues, sigma_m)
+        b, a, spread = rectangle_sides(dist.eigenvalues, sigma_m)
+        n_in = len(inl)
+        if sigma_m > 0 and spread**2 > sigma_m**2 * (1.0 + 4.0 * np.sqrt(2.0 / n_in)):
+            # the range noise alone spreads a face's points by at most sigma off its plane
+            # (less where the rays are oblique): more says the plane's slab holds parts of
+            # other surfaces, whose centre and axes would be wrong (tumblenav default)
+            skipped.append(
+                f"plane of {n_in} points spread {spread:.3f} m off its plane (noise "
+                f"{sigma_m:.3f} m): more than one surface"
+            )
+            continue
         rects = _matches(model, b, a, rel_tol)
         if not rects:
             skipped.append(
@@ -93,7 +106,17 @@ def pose_fixes(
         # a face is seen only from outside: its outward normal points at the sensor
         cands = [(r, R) for r, R in cands if (R @ r.R_MP[:, 2]) @ dist.centroid < 0] or cands
         if R_SM_predicted is not None:
-            k = int(np.argmax([np.sum(np.asarray(R_SM_predicted) * c) for _, c in cands]))
+            score = np.array([np.sum(np.asarray(R_SM_predicted) * c) for _, c in cands])
+            if p_MinS_predicted is not None:
+                # among the attitudes as close as the best (within 1e-6), the nearest origin
+                near = np.flatnonzero(score >= score.max() - 1e-6)
+                miss = [
+                    np.linalg.norm(centre - c @ r.centre_M - p_MinS_predicted)
+                    for r, c in (cands[i] for i in near)
+                ]
+                k = int(near[int(np.argmin(miss))])
+            else:
+                k = int(np.argmax(score))
         else:
             k = 0
         rect, R_SM = cands[k]

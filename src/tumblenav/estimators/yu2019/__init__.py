@@ -38,7 +38,7 @@ from tumblenav.estimators.base import parse_tuning as base_parse_tuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.estimators.yu2019.filter import DepthSteps
 from tumblenav.estimators.yu2019.model import LAYOUT
-from tumblenav.estimators.yu2019.tuning import DepthTuning, process_noise
+from tumblenav.estimators.yu2019.tuning import DepthTuning, plane_threshold, process_noise
 from tumblenav.measurements import DEPTH_CLOUDS
 
 Array = NDArray[np.float64]
@@ -92,6 +92,16 @@ class DepthEKF:
             **r.skipped,
         }
         restarts = list(r.memo[1]) if r.memo is not None else []
+        n_scans = len(meas.t)
+        if n_scans and skipped["no_rectangle"] > 0.5 * n_scans:
+            warnings.warn(
+                f"ekf-depth recognised no rectangle in {skipped['no_rectangle']} of {n_scans} "
+                f"scans (range noise {scenario.sensor.range_noise_m:g} m, plane threshold "
+                f"{plane_threshold(tun, scenario.sensor.range_noise_m):g} m against the "
+                "model's rectangles): the filter mostly coasts, and its few fixes may be "
+                "wrong rectangles; do not trust its covariance",
+                stacklevel=2,
+            )
         if restarts:
             warnings.warn(
                 f"ekf-depth lost track {len(restarts)} time(s) (every rectangle fix gated "

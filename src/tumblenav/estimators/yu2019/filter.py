@@ -102,11 +102,14 @@ class DepthSteps:
         """Epoch ``k``'s pose fixes (Yu 2019 Sec. 2-3), with the predicted attitude ``x``."""
         R_CL, R_LI = self._frames
         pts = self.meas.points[k][self.meas.observed[k]]
-        R_SM_pred = None
+        R_SM_pred, p_pred = None, None
         if x is not None and self.tun.multi_solution_fix:
             R_SM_pred = R_CL[k] @ R_LI[k] @ rot.quat_to_matrix(x[_X_ATT]).T
+            p_pred = R_CL[k] @ measurement(x, R_LI[k])[0]
         thr = plane_threshold(self.tun, self.sigma)
-        return pose_fixes(pts, self.model, thr, self.rng, self.sigma, R_SM_pred)[0]
+        return pose_fixes(
+            pts, self.model, thr, self.rng, self.sigma, R_SM_pred, p_MinS_predicted=p_pred
+        )[0]
 
     def initialise(self, k: int, previous: Array | None = None) -> tuple[Belief | None, StepInfo]:
         """Yu 2019 Sec. 4: start from the first observation, once a scan holds a fix that
@@ -164,7 +167,9 @@ class DepthSteps:
         for fx in fixes:
             q_meas = rot.matrix_to_quat((R_LI[k].T @ R_LS @ fx.R_SM).T)  # R_TI = R_MS R_SL R_LI
             p_ML = R_LS @ fx.p_MinS
-            cov_att, cov_pos = fix_covariance(fx, self.sigma, self._view_step(x, P))
+            cov_att, cov_pos = fix_covariance(
+                fx, self.sigma, self._view_step(x, P), plane_threshold(tun, self.sigma)
+            )
             cov_att = tun.attitude_noise_scale * cov_att
             cov_pos = tun.position_noise_scale * cov_pos
             R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)

@@ -8,7 +8,9 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 
 
-def fix_covariance(fx, sigma: float, view_step_rad: float | None = None) -> tuple[Array, Array]:
+def fix_covariance(
+    fx, sigma: float, view_step_rad: float | None = None, threshold_m: float = 0.0
+) -> tuple[Array, Array]:
     """Covariances (in the rectangle frame P: short, long, normal) of one fix.
 
     Attitude: first order for ``n`` points on an a x b rectangle with normal noise sigma,
@@ -24,7 +26,13 @@ def fix_covariance(fx, sigma: float, view_step_rad: float | None = None) -> tupl
     turn between two scans, consecutive errors correlate as ``r = exp(-step / psi_c)`` and the
     in-plane variance is inflated by ``(1 + r) / (1 - r)`` (an AR(1) error counted as white),
     at most 50x. All of it scales with the model's sizes, the sensor's resolution on the
-    target and the tumble (None: no inflation)."""
+    target and the tumble (None: no inflation).
+
+    Contamination (``threshold_m``, the plane's inlier distance): the slab of a plane also
+    holds strips of the surfaces next to it, a fraction ``~ threshold / b`` of its points
+    ``~ threshold`` off the plane at one edge, which tilts and shifts the fit by about
+    ``c = (threshold / b)^2 / 2`` rad and ``c b / 2`` m: 0.03 deg on Yu's satellite at 1 cm,
+    but 3 deg at its printed 0.1 m (tumblenav default; measured fix errors there 5-17 deg)."""
     b, a = fx.sides_m
     n = max(fx.n_points, 3)
     lb, la, ls = b**2 / 12 + sigma**2, a**2 / 12 + sigma**2, sigma**2
@@ -37,7 +45,10 @@ def fix_covariance(fx, sigma: float, view_step_rad: float | None = None) -> tupl
     if view_step_rad is not None:
         r = float(np.exp(-abs(view_step_rad) / max(np.sqrt(h2) / max(a, 1e-12), 1e-12)))
         inflate = min((1 + r) / max(1 - r, 1e-12), 50.0)
-    cov_pos = np.diag([inflate * h2 / 12, inflate * h2 / 12, ls / n])
+    c = 0.5 * (threshold_m / max(b, 1e-12)) ** 2
+    cov_att = cov_att + c**2 * np.eye(3)
+    in_plane = inflate * h2 / 12 + (c * b / 2) ** 2
+    cov_pos = np.diag([in_plane, in_plane, ls / n])
     return cov_att, cov_pos
 
 

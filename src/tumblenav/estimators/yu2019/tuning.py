@@ -30,7 +30,11 @@ class DepthTuning(BaseModel):
     )
     P0_sigma_attitude_rad: float = Field(0.1, gt=0, description="initial attitude 1-sigma (rad)")
     P0_sigma_rate_rad_s: float = Field(
-        0.01, gt=0, description="initial 1-sigma of the rate (rad/s); the filter starts at rate 0"
+        0.1,
+        gt=0,
+        description="initial 1-sigma of the rate (rad/s); the filter starts at rate 0, so this "
+        "must cover the tumble (tumblenav default 0.1 rad/s, ~6 deg/s; Yu 2019 Sec. 4 uses "
+        "0.01 for its 1 deg/s spin, set in the yu2019 scenario)",
     )
     P0_sigma_inertia: float | Literal["inertia_init"] = Field(
         "inertia_init",
