@@ -10,7 +10,9 @@ numpy 2), see ``shared/papers/chang2021-notes.md`` sec. 2.  Per camera and frame
 
 1. primary rays through the pixel centres ``(i + 0.5, j + 0.5)`` (``supersample = n``: an
    n x n grid of sub-pixel rays averaged), only inside the projection of the target's
-   bounding box (ROI);
+   bounding box (ROI), and there only from the pixels that a projected triangle (grown by
+   ``_COVER_MARGIN_PX``) can cover: the rays of the others would miss (the same pixels and
+   truth maps as casting the whole ROI; a third of the rays at close range);
 2. the shader: hit point in M from Embree's barycentrics, the face normal turned towards the
    camera (two-sided surfaces), the albedo sampled trilinearly from the mip-mapped texture
    (:mod:`tumblenav.sensors.texture`) at the level of the pixel footprint;
@@ -23,7 +25,9 @@ numpy 2), see ``shared/papers/chang2021-notes.md`` sec. 2.  Per camera and frame
    so a white surface facing the sun reads ``exposure`` and a shadowed one
    ``exposure * ambient``.  Black space behind.  ``sun_C = None`` (eclipse): ``s = 0``
    everywhere (no sunlit Earth in view either), the frame holds only noise;
-5. the sensor chain of :mod:`tumblenav.sensors.image_noise` and 8-bit quantisation.
+5. the sensor chain of :mod:`tumblenav.sensors.image_noise` and 8-bit quantisation, told
+   the box of pixels with signal (the per-pixel chain runs there, the dark rest of the frame
+   is drawn from its exact DN distribution).
 
 The two cameras of a pair use the same model pose; they are rendered in two threads (Embree
 and the compiled shader release the GIL), each camera's noise from its own generator seeded
