@@ -259,6 +259,25 @@ def test_a_summary_outside_its_bounds_says_so():
     )
 
 
+def test_restarts_alarms_branches_and_the_estimators_own_warnings_are_said():
+    summary = {
+        "runs": 20,
+        "runs_reinitialised": 3,
+        "runs_nis_alarm": 2,
+        "branches": {"nominal": 18, "x<->y (y,-x,z)": 2},
+        "estimator_warnings": ["q_omega_var is 40x the scenario's (3 of 20 runs)"],
+    }
+    text = "\n".join(pipeline.assess(summary))
+    assert "3 of 20 run(s) lost track and started again" in text
+    assert "2 of 20 run(s) raised the lost-track alarm" in text
+    assert "2 of 20 runs converged to a symmetric equivalent" in text
+    assert "q_omega_var is 40x the scenario's (3 of 20 runs)" in text
+    # a single run says the same from its own skipped counts
+    one = pipeline.assess({"runs": 1, "skipped": {"reinitialised": 2, "nis_alarm": 0}})
+    assert any("1 of 1 run(s) lost track" in w for w in one)
+    assert not any("alarm" in w for w in one)
+
+
 def test_estimate_writes_its_warnings_and_no_figure_with_no_plots(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(pipeline, "kernels_compiled", lambda: False)
     sc = write(tmp_path, "short", short_hu())

@@ -274,6 +274,9 @@ def run_estimate(
         summary["measurements"] = str(Path(measurements) / "measurements.nc")
     if frontend_stats is not None:
         summary["frontend"] = frontend_stats
+    notes = [str(w) for w in hist.info.get("warnings", []) or []]
+    if notes:  # what the estimator said about its own run
+        summary["estimator_warnings"] = notes
     if r is not None:
         summary["rmse"] = {
             k: metrics.rmse_over_time(v, r.t, scenario.window_s) for k, v in r.errors.items()
@@ -481,6 +484,7 @@ def assess(summary: dict[str, Any]) -> list[str]:
     note = metrics.branch_warning(summary.get("branches"))
     if note:
         out.append(note)
+    out.extend(summary.get("estimator_warnings") or [])
     if summary.get("runs_failed"):
         out.append(
             f"{summary['runs_failed']} run(s) failed with an error (seeds and errors under "

@@ -121,6 +121,9 @@ def _evaluated(hist, truth, scenario: Scenario) -> tuple[Any, dict[str, Any]]:
     r = evaluation.evaluate_run(hist, truth)
     extras: dict[str, Any] = {f"skipped_{n}": c for n, c in hist.skipped.items()}
     extras["branch"] = r.branch
+    notes = [str(w) for w in hist.info.get("warnings", []) or []]
+    if notes:  # what the estimator said about its own run (tuning far from the scenario, ...)
+        extras["warnings"] = notes
     return r, {**extras, **metrics.axis_moments(r, scenario.window_s)}
 
 
@@ -554,6 +557,14 @@ def summarise(store: CampaignStore, scenario: Scenario, estimator_name: str, run
         summary["branches"] = metrics.branch_counts(
             str(x.get("branch", metrics.NOMINAL)) for x in cons["extras"]
         )
+        said: dict[str, int] = {}
+        for x in cons["extras"]:
+            for w in dict.fromkeys(str(v) for v in np.atleast_1d(x.get("warnings", []))):
+                said[w] = said.get(w, 0) + 1
+        if said:  # each distinct line once, with the number of runs that said it
+            summary["estimator_warnings"] = [
+                f"{w} ({n} of {summary['runs']} runs)" for w, n in said.items()
+            ]
         note = metrics.branch_warning(summary["branches"])
         if note:  # pipeline.assess writes the warnings again: it repeats this line
             summary["warnings"] = [note]
