@@ -85,7 +85,7 @@ def run_filter(
     covered = tun.dpacf_measurement == "attitude" and tun.gate_probability is None
     if engine == "compiled" and not covered:
         raise ValueError("the compiled engine covers dpacf_measurement 'attitude' without a gate")
-    fe_all = frontend(meas_list, tun)
+    fe_all = frontend(meas_list, tun, s_r2)
     fe = filter_view(fe_all, tun.max_dpacf_sigma_rad)
     B, n, N = fe.usable.shape
     lay = layout(N)
@@ -441,8 +441,11 @@ def filter_view(
     return view
 
 
-def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
-    """The stereo-points front end on B runs, with the settings ``tun.frontend``."""
+def frontend(meas_list, tun: HuTuning, q_r: float = 0.0) -> stereo_points.PointsFrontEnd:
+    """The stereo-points front end on B runs, with the settings ``tun.frontend`` and the
+    disturbance torque the filter assumes (``q_r``, rad^2/s^3, its sigma_r^2: the inertia
+    least squares' momentum random-walks with it), unless ``tun.frontend.ls_torque_rad2_s4``
+    says otherwise."""
     fe = tun.frontend
     out = stereo_points.process(
         meas_list,
@@ -453,6 +456,7 @@ def frontend(meas_list, tun: HuTuning) -> stereo_points.PointsFrontEnd:
             g_fit=fe.g_attitude_fit,
             template_refine_s=tuple(np.atleast_1d(np.asarray(fe.template_refine_s, float))),
             unbiased_last=fe.ls_unbiased_rates,
+            q_r=float(q_r if fe.ls_torque_rad2_s4 == "process_noise" else fe.ls_torque_rad2_s4),
         ),
     )
     out.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

@@ -130,13 +130,16 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         # the runs' last version (the rows the least squares accumulates to the end): the
         # unbiased rate fit (see rates_and_covariance)
         last = (bounds[v + 1] >= n) & (v > 0) & s.unbiased_last
-        vers.append((Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last))
+        fit: dict = {}
+        vers.append(
+            (Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last, details=fit) + (fit,)
+        )
     # as reported at each epoch: G from a version's refinement on, the rate of epoch j (known
     # at j + h) from the version in force at j + h
     R_GI = np.full((len(meas_list), n, 3, 3), np.nan)
     cov_G, omega_G, cov_w = R_GI.copy(), R_GI[..., 0].copy(), R_GI.copy()
     ep = np.arange(n)[None, :]
-    for v, (Rv, cGv, omv, _, cwv) in enumerate(vers):
+    for v, (Rv, cGv, omv, _, cwv, _) in enumerate(vers):
         m = Rv.shape[1]
         sel = (ep >= bounds[v][:, None]) & (ep < bounds[v + 1][:, None])
         R_GI[:, :m] = np.where(sel[:, :m, None, None], Rv, R_GI[:, :m])
@@ -148,11 +151,11 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3.0
     # the least squares: the last version's rows, those of the earlier versions for the
     # solutions before the next refinement
-    R_ls, _, om_ls, cf_ls, cw_ls = vers[-1]
+    R_ls, cG_ls, om_ls, cf_ls, cw_ls, fit_ls = vers[-1]
     before = [
         (om, np.trace(cw, axis1=-2, axis2=-1) / 3.0, Rv, cf if full else None, bounds[v],
-         bounds[v + 1])
-        for v, (Rv, _, om, cf, cw) in enumerate(vers[:-1])
+         bounds[v + 1], fd, cGv)
+        for v, (Rv, cGv, om, cf, cw, fd) in enumerate(vers[:-1])
     ]  # fmt: skip
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
         om_ls,
@@ -164,6 +167,9 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_w=cf_ls if full else None,
         R_GI_report=R_GI,
         before=before,
+        fit=fit_ls,
+        dt=dt,
+        cov_G_rows=cG_ls,
     )
     return PointsFrontEnd(
         t=t,

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 from tumblenav.frontends import _points_kernel
 from tumblenav.frontends.inertia import inertia_design, principal_frame
+from tumblenav.frontends.stereo_points import gls
 from tumblenav.frontends.stereo_points.rates import _finite_or_identity, _quats
 from tumblenav.frontends.stereo_points.settings import FrontEndSettings
 
 Array = NDArray[np.float64]
+
+# the compiled sums (numba's dispatcher types its call with a fixed arity)
+_gls_sums: Any = gls.gls_sums_at
 
 
 def _inertia_from_l(l: Array) -> Array:
@@ -51,44 +57,129 @@ def identify_and_dpacf(
     cov_w: Array | None = None,
     R_GI_report: Array | None = None,
     before: list[tuple] | None = None,
+    fit: dict | None = None,
+    dt: float = 1.0,
+    cov_G_rows: Array | None = None,
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
     covariance of the inertia ratios (eq. 19). With the covariances of the rates' fit noise
     ``cov_w`` (B,n,3,3) the least squares is generalised (rows whitened), else weighted by
     ``1 / var_w``. ``R_GI_report``: the G attitudes of the attitude measurement, if not
-    ``R_GI``. ``before``: a list of ``(omega, var_w, R_GI, cov_w, k_from, k_to)``, the rows of
-    the first epochs (as many as given) as they were between two of the template's
-    refinements: the solutions at epochs ``k_from <= k < k_to`` ((B,) each) use these rows
-    instead of the main ones."""
+    ``R_GI``. ``before``: a list of ``(omega, var_w, R_GI, cov_w, k_from, k_to[, fit,
+    cov_G])``, the rows of the first epochs (as many as given) as they were between two of
+    the template's refinements: the solutions at epochs ``k_from <= k < k_to`` ((B,) each)
+    use these rows instead of the main ones.
+
+    The rows' noise and the momentum's random walk under the scenario's disturbance torque
+    (``s.q_r``) are modelled as in :mod:`~tumblenav.frontends.stereo_points.gls`: ``fit``
+    (``rates_and_covariance``'s ``details``, the rate fit chosen at each epoch) and ``cov_G``
+    (``cov_G_rows``: the G attitudes' covariance of the rows' version, if not ``cov_G``) give the rates' correlation over
+    ``dt``-spaced epochs; without ``fit``, every epoch is taken as the cubic fit."""
     B, n = omega_G.shape[:2]
-    a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
     held = (np.arange(n) // s.ls_every) * s.ls_every
     sel = np.unique(held)
-    # Sums of w a^T a, w a^T b, w |b|^2 and the count of epochs, up to epoch k - delay at
-    # each solved epoch k. Causality: the rate at epoch j uses attitudes up to j + h, so epoch
-    # k may only use the least-squares sums up to k - h (compiled loop).
-    N, r, bb, cnt = _points_kernel.normal_equations_at(a, b, w, ok, delay, sel)
-    for om_o, var_o, R_o, cw_o, k_from, k_to in before or []:
+    cG_rows = cov_G if cov_G_rows is None else cov_G_rows
+    rows = _gls_rows(omega_G, var_w, R_GI, cov_w, cG_rows, fit, s, dt)
+    N, r, bb, cnt, V, E, Nc, rc, M = _version_sums(rows, omega_G, R_GI, s, dt, delay, sel)
+    for item in before or []:
+        om_o, var_o, R_o, cw_o, k_from, k_to = item[:6]
+        fit_o = item[6] if len(item) > 6 else None
+        cG_o = item[7] if len(item) > 7 else cov_G
         # the solutions between two refinements: the sums of the rows as they were then
         m = min(int(k_to.max()), n)
         early = sel < m
         if not early.any():
             continue
-        ao, bo, wo, oko = _ls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
-                                   None if cw_o is None else cw_o[:, :m])  # fmt: skip
+        sub = None if fit_o is None else {k: v[:, :m] for k, v in fit_o.items()}
+        rows_o = _gls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
+                           None if cw_o is None else cw_o[:, :m], cG_o[:, :m], sub, s, dt)  # fmt: skip
         se = sel[early]
         # the sums of a solution before k_to cover epochs up to k_to - h - 1 < m only
-        No, ro, bbo, co = _points_kernel.normal_equations_at(ao, bo, wo, oko, delay, se)
+        so = _version_sums(rows_o, om_o[:, :m], R_o[:, :m], s, dt, delay, se)
         use = (se[None, :] >= k_from[:, None]) & (se[None, :] < k_to[:, None])  # (B, S_early)
-        N[:, early] = np.where(use[..., None, None], No, N[:, early])
-        r[:, early] = np.where(use[..., None], ro, r[:, early])
-        bb[:, early] = np.where(use, bbo, bb[:, early])
-        cnt[:, early] = np.where(use, co, cnt[:, early])
+        for full, part in zip((N, r, bb, cnt, V, E, Nc, rc, M), so, strict=True):
+            u = use.reshape(use.shape + (1,) * (part.ndim - 2))
+            full[:, early] = np.where(u, part, full[:, early])
     return _solve_and_dpacf(N, r, bb, cnt, sel, held, s,
-                            R_GI if R_GI_report is None else R_GI_report, cov_G)  # fmt: skip
+                            R_GI if R_GI_report is None else R_GI_report, cov_G, V, E,
+                            Nc, rc, M)  # fmt: skip
+
+
+def _version_sums(rows, omega_G, R_GI, s, dt, delay, sel):
+    """The sums of one version's rows at epochs ``sel`` (``gls.gls_sums_at``): N, r, bb,
+    cnt, V, E, Nc, rc, M. Causality: the rate at epoch j uses attitudes up to j + h, so
+    epoch k may only use the sums up to k - delay (compiled loop)."""
+    n = omega_G.shape[1]
+    N, r, _, cnt = _points_kernel.normal_equations_at(
+        rows[0], rows[1], rows[2].astype(float), rows[2], delay, sel
+    )
+    # The noise model needs the normalised inertia (gls): each row takes the latest one
+    # solved from these rows by then (the rows before the first one take the first: they
+    # enter no solution before it)
+    I_sel, lam1 = _inertia_at(N, r, cnt, s)
+    at = np.maximum(np.searchsorted(sel, np.arange(n) + delay, "right") - 1, 0)
+    q_step = s.q_r * dt * lam1[:, at] ** 2
+    out = _gls_sums(*rows, _with_rate(I_sel[:, at], omega_G), np.ascontiguousarray(R_GI),
+                    delay, sel, q_step)  # fmt: skip
+    return out[:8] + out[9:]
+
+
+def _with_rate(I_row, omega):
+    """(B,n,4,3): the normalised inertia with the rate below it (gls.gls_sums_at's Ibar)."""
+    return np.ascontiguousarray(np.concatenate([I_row, np.nan_to_num(omega)[..., None, :]], -2))
+
+
+def _gls_rows(omega_G, var_w, R_GI, cov_w, cov_G, fit, s, dt):
+    """The arguments of :func:`gls.gls_sums_at` before ``Ibar``: whitened rows, their
+    whitening, the attitudes' covariance, the rate fit's coefficients and its independent
+    part."""
+    B, n = omega_G.shape[:2]
+    h = s.rate_half_window
+    a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
+    if cov_w is None:  # weighted rows: scale them to unit weight
+        sw = np.sqrt(w)
+        a = a * sw[..., None, None]
+        b = b * sw[..., None]
+        Linv = sw[..., None, None] * np.eye(3)
+    else:
+        ok = ok.copy()
+        Linv = gls.whitening(np.ascontiguousarray(np.nan_to_num(cov_w)), ok)
+    cl, cc = gls.fit_coefficients(h)
+    cubic = np.ones((B, n), bool) if fit is None else fit["cubic"]
+    # the rate's noise from the attitudes: -sum_i c_i psi_{j+i} / dt (rates_and_covariance)
+    coef = -np.where(cubic[..., None], cc, cl) / dt
+    extra = np.zeros((B, n, 3, 3)) if fit is None else np.nan_to_num(fit["bias_cov"])
+    S = np.ascontiguousarray(np.nan_to_num(cov_G))
+    return (np.ascontiguousarray(a), np.ascontiguousarray(b), ok, np.ascontiguousarray(Linv),
+            S, np.ascontiguousarray(coef), np.ascontiguousarray(extra))  # fmt: skip
+
+
+def _inertia_at(N, r, cnt, s):
+    """The normalised inertia (B,S,3,3) solved from the sums and its largest eigenvalue
+    (B,S), where solvable; the runs' first such values before it, the identity where none."""
+    d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
+    Ns = N / (d[..., :, None] * d[..., None, :])
+    ev = np.linalg.eigvalsh(Ns)
+    ok = (cnt >= s.min_ls_epochs) & (ev[..., -1] < s.max_condition * np.maximum(ev[..., 0], 1e-300))
+    Ninv = np.linalg.inv(np.where(ok[..., None, None], Ns, np.eye(8))) / (
+        d[..., :, None] * d[..., None, :]
+    )
+    X = np.einsum("...ij,...j->...i", Ninv, r)
+    I_G = _inertia_from_l(np.where(ok[..., None], X[..., :5], 0.0))
+    ev_I = np.linalg.eigvalsh(I_G)
+    ok &= np.all(np.isfinite(ev_I), -1) & (ev_I[..., 0] > 0) & (ev_I[..., -1] < 100.0)
+    I_out = np.broadcast_to(np.eye(3), I_G.shape).copy()
+    lam = np.ones(ok.shape)
+    for bi in range(len(ok)):
+        idx = np.flatnonzero(ok[bi])
+        if len(idx):
+            last = np.maximum.accumulate(np.where(ok[bi], np.arange(ok.shape[1]), idx[0]))
+            I_out[bi] = I_G[bi, last]
+            lam[bi] = ev_I[bi, last, -1]
+    return I_out, lam
 
 
 def _ls_rows(
@@ -117,7 +208,9 @@ def _ls_rows(
     return a, b, w, ok
 
 
-def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
+def _solve_and_dpacf(
+    N, r, bb, cnt, sel, held, s, R_GI, cov_G, V=None, E=None, Nc=None, rc=None, M=None
+):
     """identify_and_dpacf from the least-squares sums at the solved epochs ``sel``."""
     d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
     Ns = N / (d[..., :, None] * d[..., None, :])
@@ -129,13 +222,40 @@ def _solve_and_dpacf(N, r, bb, cnt, sel, held, s, R_GI, cov_G):
     Ninv_s = np.linalg.inv(Nreg)
     Ninv = Ninv_s / (d[..., :, None] * d[..., None, :])
     X = np.einsum("...ij,...j->...i", Ninv, r)
+    if Nc is not None and rc is not None:
+        # errors in variables (beyond Hu 2024): the rates' noise in the rows' own terms adds
+        # E[da^T da] to N and E[da^T db] to r, which biases the solution towards a smaller
+        # I_bar by about var(omega) / omega^2 (measured: the frame error grew as the noise
+        # squared, NEES/dof 7 at 2e-4 rad of G attitude noise); subtract them
+        # (bias-compensated least squares) where the result stays well conditioned
+        Nb = N - Nc
+        Nbs = Nb / (d[..., :, None] * d[..., None, :])
+        evb = np.linalg.eigvalsh(Nbs)
+        good = valid & (evb[..., 0] > 0) & (evb[..., -1] < s.max_condition * evb[..., 0])
+        Nbinv = np.linalg.inv(np.where(good[..., None, None], Nbs, eye8))
+        Nbinv = Nbinv / (d[..., :, None] * d[..., None, :])
+        Xb = np.einsum("...ij,...j->...i", Nbinv, r - rc)
+        X = np.where(good[..., None], Xb, X)
+        Ninv = np.where(good[..., None, None], Nbinv, Ninv)
     rss = bb - 2 * np.einsum("...i,...i->...", X, r) + np.einsum("...i,...ij,...j->...", X, N, X)
     dof = np.maximum(3 * cnt - 8, 1)
     s2 = np.maximum(rss / dof, 1e-30)
-    # The rates come from overlapping windows of 2h+1 attitudes, so neighbouring epochs share
-    # their noise: the least-squares covariance, which assumes independent epochs, is too
-    # small by about that factor.
-    cov_l = (2 * s.rate_half_window + 1) * s2[..., None, None] * Ninv[..., :5, :5]
+    if V is None or E is None:
+        # independent epochs (Hu 2024 eq. 13), scaled by the reduced chi-square
+        cov_X = s2[..., None, None] * Ninv
+    else:
+        # the rows' noise model (gls: the rates' correlation, the disturbance torque): the
+        # sandwich N^-1 V N^-1, scaled up where the residuals exceed what that model
+        # expects, E - tr(N^-1 V) (tumblenav default)
+        if s.rate_noise == "independent":
+            V = N  # each row's noise independent of the others' (see FrontEndSettings)
+        if M is not None:
+            V = V + M
+        cov_X = Ninv @ V @ Ninv
+        expect = E - np.trace(Ninv @ V, axis1=-2, axis2=-1)
+        scale = np.maximum(rss / np.maximum(expect, 1e-30), 1.0)
+        cov_X = scale[..., None, None] * cov_X
+    cov_l = cov_X[..., :5, :5]
     I_G = _inertia_from_l(X[..., :5])
     lam = np.linalg.eigvalsh(np.where(valid[..., None, None], I_G, np.diag([3.0, 2.0, 1.0])))
     lam = lam[..., ::-1]

@@ -17,6 +17,7 @@ def rates_and_covariance(
     h: int,
     bias_epochs: int = 100,
     unbiased: bool | NDArray[np.bool_] = False,
+    details: dict | None = None,
 ) -> tuple[Array, Array, Array]:
     """Rate of G w.r.t. I in G (B,n,3) and its covariance (B,n,3,3), from the G attitudes.
 
@@ -48,7 +49,10 @@ def rates_and_covariance(
     ``phi_j`` is taken relative to ``R_GI(k)``, whose error ``psi`` enters turned by
     ``j dt omega``, which leaves ``-[omega x] psi`` in the slope (``[omega x] cov_G [omega
     x]^T``; a fifth of the line's variance for this tumble). NaN unless all ``2h + 1``
-    epochs have a G attitude."""
+    epochs have a G attitude. ``details``, if given, receives ``cubic`` (B,n), the epochs
+    that took the cubic fit, and ``bias_cov`` (B,n,3,3), the line's bias allowance in the
+    covariance (zero for the cubic fit): the inertia least squares' correlation model
+    (``gls``)."""
     q = _quats(_finite_or_identity(R_GI))
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
@@ -78,6 +82,9 @@ def rates_and_covariance(
         cov = np.where(cubic[..., None, None], fc * C, fl * C + b2[..., None] * eye)
     omega = np.where(good[..., None], omega, np.nan)
     cov = np.where(good[..., None, None], cov, np.nan)
+    if details is not None:
+        details["cubic"] = cubic & good
+        details["bias_cov"] = np.where((good & ~cubic)[..., None, None], b2[..., None] * eye, 0.0)
     wx = _skew(np.nan_to_num(omega))
     return omega, cov, cov + wx @ np.nan_to_num(cov_G) @ np.swapaxes(wx, -1, -2)
 

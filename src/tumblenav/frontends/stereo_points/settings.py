@@ -26,6 +26,19 @@ class FrontEndSettings:
     template_refine_s: float | tuple[float, ...] = 0.0
     # after the last refinement, the least squares' rows from the unbiased (cubic) rate fit
     unbiased_last: bool = True
+    # the disturbance torque the mission assumes (the scenario's process_noise
+    # rotational_rad2_s4, rad^2/s^3: the angular acceleration's spectral density about the
+    # largest moment's axis; tumblenav.dynamics.disturbances): the inertia least squares'
+    # angular momentum random-walks (stereo_points.gls); 0: torque-free (Hu 2024 eq. 10)
+    q_r: float = 0.0
+    # the rates' noise in the inertia least squares' covariance (stereo_points.gls):
+    # "white_attitudes": the moving-sum correlation of G attitude errors independent between
+    # epochs (exact for them, verified by Monte Carlo; the rows' noise then nearly cancels
+    # over long spans); "independent": each row's noise independent of the others', the
+    # long-span variance of a row's own (measured on hu_big12: the rates' errors summed over
+    # 20 s have 0.3-0.5 of it, from the template's slowly varying share of the G attitude
+    # error, which the white model misses: frame NEES/dof 3-10 torque-free)
+    rate_noise: str = "independent"
 
 
 class StereoPointsTuning(BaseModel):
@@ -73,6 +86,25 @@ class StereoPointsTuning(BaseModel):
         "benchmarks/hu2024_refinement_checks.py schedule); false: the per-epoch choice "
         "throughout. No effect without a refinement",
     )
+
+    ls_torque_rad2_s4: float | Literal["process_noise"] = Field(
+        0.0,
+        description="the disturbance torque the inertia least squares allows for "
+        "(rad^2/s^3, the angular acceleration's spectral density about the largest "
+        "moment's axis, as process_noise.rotational_rad2_s4): its angular momentum "
+        "random-walks with it and the DPACF frame's covariance says so "
+        "(stereo_points.gls); 'process_noise': the filter's sigma_r2 (by default the "
+        "scenario's process_noise); 0: torque-free, Hu 2024 eq. 10 (the paper's least "
+        "squares; with the paper's sigma_r2 = 2.5e-5 allowed for, the frame's 1-sigma stays "
+        "above 0.2 rad over hu2024's 200 s: the torque hides the inertia)",
+    )
+
+    @field_validator("ls_torque_rad2_s4")
+    @classmethod
+    def _torque(cls, v: float | str) -> float | str:
+        if not isinstance(v, str) and not (np.isfinite(v) and v >= 0):
+            raise ValueError("ls_torque_rad2_s4: finite and >= 0, or 'process_noise'")
+        return v
 
     @field_validator("template_refine_s")
     @classmethod
