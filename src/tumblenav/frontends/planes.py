@@ -163,6 +163,8 @@ def distribution_matrix(points: Array, weights: Array | None = None) -> Distribu
     (:func:`ray_footprint_weights`); None is Yu's plain mean."""
     p = _clean(points)
     finite = np.all(np.isfinite(p), axis=1)
+    if weights is not None and np.shape(weights) != (len(p),):
+        raise ValueError(f"weights must have shape ({len(p)},), got {np.shape(weights)}")
     p = p[finite]
     if len(p) < 3:
         raise ValueError("a distribution matrix needs at least 3 finite points")
@@ -170,8 +172,8 @@ def distribution_matrix(points: Array, weights: Array | None = None) -> Distribu
         w = np.full(len(p), 1.0 / len(p))
     else:
         w = np.asarray(weights, dtype=float)[finite]
-        if w.shape != (len(p),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
-            raise ValueError("weights must be finite, non-negative, one per point, not all 0")
+        if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise ValueError("weights must be finite and non-negative, not all 0")
         w = w / w.sum()
     rm = w @ p  # eq. 3
     d = p - rm

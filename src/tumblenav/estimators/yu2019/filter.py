@@ -195,7 +195,9 @@ class DepthSteps:
                 # the rate stay, and the Joseph form below is exact for any gain
                 unexcited = unexcited_ratios(x[_X_RATE], x[_X_INERTIA], P[_E_RATE, _E_RATE])
                 K[_E_INERTIA][unexcited] = 0.0
-                if spin_axis_fixed(x[_X_RATE], x[_X_INERTIA], unexcited, P[_E_RATE, _E_RATE]):
+                if tun.consider_spin_axis_offset and spin_axis_fixed(
+                    x[_X_RATE], x[_X_INERTIA], unexcited, P[_E_RATE, _E_RATE]
+                ):
                     # a spin about a principal axis: the offset along the spin axis (fixed
                     # in T and in inertial space) is told from r only by the Hill model's
                     # curvature of r over the run (2% at 200 s in LEO), which mm of slowly
@@ -205,7 +207,7 @@ class DepthSteps:
             A = np.eye(LAYOUT.dim) - K @ H
             P = A @ P @ A.T + K @ R @ K.T  # Joseph form
             x_new = LAYOUT.boxplus(x, K @ nu)
-            if not physical_inertia(x_new[_X_INERTIA]):
+            if not physical_inertia(x_new[_X_INERTIA]) and physical_inertia(x[_X_INERTIA]):
                 # a step that makes the inertia not positive definite would let the Euler
                 # equations explode: keep the ratios where they were, take the rest, and
                 # count it

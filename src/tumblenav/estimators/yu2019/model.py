@@ -223,7 +223,13 @@ def _initial_inertia(tun: DepthTuning, rng: np.random.Generator) -> Array:
     given = np.asarray(tun.inertia_init_ratios, float)
     if not tun.inertia_init_perturb:
         return given
-    return given + _sigma_inertia(tun) * rng.normal(size=5)
+    # a draw that is no rigid body (physical_inertia: e.g. the two smaller moments no longer
+    # summing to the largest) would freeze the ratios there: drawn again (tumblenav default)
+    for _ in range(100):
+        draw = given + _sigma_inertia(tun) * rng.normal(size=5)
+        if physical_inertia(draw):
+            return draw
+    return given
 
 
 def measurement(x: Array, R_LI: Array) -> tuple[Array, Array]:
