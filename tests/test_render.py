@@ -442,10 +442,10 @@ def test_rays_only_where_triangles_project_give_the_pixels_and_truth_of_the_whol
     R_kM = cam.R_CkC @ poses[2][0]
     p_k = cam.R_CkC @ (poses[2][1] - cam.p_CkinC)
     roi = r._roi(cam, R_kM, p_k)
-    cast = r._covered(cam, R_kM, p_k, roi).size
+    cast = r._covered(cam, R_kM, p_k, roi)[0].size
     assert cast < 0.7 * (roi[1] - roi[0]) * (roi[3] - roi[2])
     monkeypatch.setattr(render, "_COVER_MARGIN_PX", 1e6)
-    assert r._covered(cam, R_kM, p_k, roi).size == (roi[1] - roi[0]) * (roi[3] - roi[2])
+    assert r._covered(cam, R_kM, p_k, roi)[0].size == (roi[1] - roi[0]) * (roi[3] - roi[2])
     for (R, p), a in zip(poses, culled, strict=True):
         b = r.render(R, p, sun, None)
         assert a.mask.sum() > 500

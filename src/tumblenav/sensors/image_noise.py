@@ -30,9 +30,9 @@ Gaussian of variance ``e + dark + read^2`` (their sum, exactly), below it a Pois
 the read noise.  Every other pixel (black space, shadows outside the target, eclipse frames)
 has the same DN distribution, that of dark current plus read noise, whose 256 probabilities
 are computed once (:func:`background_pmf`): the frame is drawn from them directly, as the
-few non-zero outcomes only when zero is likely (``P(DN > 0) <= _SPARSE_BELOW``: a binomial
-count, uniform positions without replacement, values from the pmf given DN > 0, which gives
-each pixel the pmf independently) and by inverse CDF otherwise.  The pixels' marginal
+few non-zero outcomes only when zero is likely (``P(DN > 0) <= _SPARSE_BELOW``: the gaps
+between non-zero pixels are geometric, their values drawn from the pmf given DN > 0, which
+gives each pixel the pmf independently) and by inverse CDF otherwise.  The pixels' marginal
 distributions and their independence are those of the per-pixel chain (up to ``float32``
 rounding at the rounding boundaries); the draws, so the pixels of a given seed, differ from
 the chain's.
@@ -54,7 +54,7 @@ __all__ = ["DefectPattern", "ImageNoise", "apply_noise", "background_pmf", "defe
 
 F32 = NDArray[np.float32]
 _GAUSS_ABOVE_E = 50.0
-_SPARSE_BELOW = 0.02  # P(DN > 0) of a dark pixel below which only non-zero DN are drawn
+_SPARSE_BELOW = 0.2  # P(DN > 0) of a dark pixel below which only non-zero DN are drawn
 
 
 @dataclass(frozen=True)
@@ -163,24 +163,33 @@ def background_pmf(noise: ImageNoise) -> NDArray[np.float64]:
     return pmf / pmf.sum()
 
 
-def _background(noise: ImageNoise, n: int, rng: np.random.Generator) -> NDArray[np.uint8]:
-    """``n`` independent DN of pixels without signal, drawn from :func:`background_pmf`."""
+def _background(noise: ImageNoise, out: NDArray[np.uint8], rng: np.random.Generator) -> None:
+    """Fill ``out`` (flat) with independent DN of pixels without signal, drawn from
+    :func:`background_pmf`."""
     pmf = background_pmf(noise)
     p_on = 1.0 - pmf[0]
+    n = out.size
     if p_on <= 0.0:
-        return np.zeros(n, np.uint8)
+        out[:] = 0
+        return
     if p_on > _SPARSE_BELOW:  # inverse CDF, one uniform a pixel
         cdf = np.cumsum(pmf).astype(np.float32)
         cdf[-1] = np.float32(np.inf)
         u = rng.random(n, dtype=np.float32)
-        return np.searchsorted(cdf, u, side="right").astype(np.uint8)
-    # mostly zeros: each pixel is non-zero with probability p_on, independently
-    out = np.zeros(n, np.uint8)
-    count = int(rng.binomial(n, p_on))
-    if count:
-        pos = rng.choice(n, size=count, replace=False)
-        out[pos] = rng.choice(255, size=count, p=pmf[1:] / p_on) + 1
-    return out
+        out[:] = np.searchsorted(cdf, u, side="right")
+        return
+    # mostly zeros: each pixel is non-zero with probability p_on, independently, so the gaps
+    # between successive non-zero pixels are geometric
+    out[:] = 0
+    mean = n * p_on
+    m = int(mean + 6.0 * np.sqrt(mean) + 16.0)
+    pos = np.cumsum(rng.geometric(p_on, size=m)) - 1
+    while pos[-1] < n:  # more than 6 sigma of non-zero pixels: draw on
+        pos = np.concatenate([pos, pos[-1] + np.cumsum(rng.geometric(p_on, size=m))])
+    pos = pos[pos < n]
+    cdf_on = np.cumsum(pmf[1:]) / p_on  # DN 1..255 given DN > 0
+    cdf_on[-1] = np.inf
+    out[pos] = np.searchsorted(cdf_on, rng.random(pos.size), side="right") + 1
 
 
 def _signal_box(s: F32) -> Box:
@@ -261,7 +270,7 @@ def apply_noise(
         if rng is None:
             raise InputError("this image noise needs a random generator")
         flat = dn.reshape(-1)
-        flat[:] = _background(noise, flat.size, rng)
+        _background(noise, flat, rng)
         if j1 > j0 and i1 > i0:
             sub = s[j0:j1, i0:i1]
             rr, cc = np.nonzero(sub > 0)

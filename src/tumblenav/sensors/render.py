@@ -330,6 +330,46 @@ def _coverage(tri_uv, rh, rw, margin, cover):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _covered_pixels(cover, i0, j0, w):
+    """The marked ROI pixels of ``cover``: their flat ROI indices, their flat indices in a
+    frame ``w`` wide (ROI corner at pixel ``(i0, j0)``) and the box (rows ``[r0, r1)``,
+    columns ``[c0, c1)``, frame pixels) that holds them."""
+    rh, rw = cover.shape
+    n = 0
+    for j in range(rh):
+        for i in range(rw):
+            if cover[j, i]:
+                n += 1
+    pix = np.empty(n, np.int64)
+    at = np.empty(n, np.int64)
+    r0, r1, c0, c1 = rh, 0, rw, 0
+    m = 0
+    for j in range(rh):
+        for i in range(rw):
+            if cover[j, i]:
+                pix[m] = j * rw + i
+                at[m] = (j + j0) * w + i + i0
+                m += 1
+                r0 = min(r0, j)
+                r1 = max(r1, j + 1)
+                c0 = min(c0, i)
+                c1 = max(c1, i + 1)
+    return pix, at, r0 + j0, r1 + j0, c0 + i0, c1 + i0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _scatter(at, values, out):
+    """``out[at[i]] = values[i]`` (flat arrays; rows of ``values`` and ``out`` when 2-D)."""
+    if values.ndim == 1:
+        for i in range(at.size):
+            out[at[i]] = values[i]
+    else:
+        for i in range(at.size):
+            for c in range(values.shape[1]):
+                out[at[i], c] = values[i, c]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _primary_rays(pix, rw, n, i0, j0, cu, cv, f, R_kM, origin, dirs, origins):
     """Rays of the ROI pixels ``pix`` (flat, row-major in a ROI ``rw`` wide whose corner is
     pixel ``(i0, j0)``), an n x n grid each at sub-pixel ``(a + 0.5) / n``, ordered (pixel,
@@ -568,24 +608,28 @@ class StereoRenderer:
 
     def _covered(
         self, cam: Camera, R_kM: Array, p_MinCk: Array, roi: tuple[int, int, int, int]
-    ) -> NDArray[np.int64]:
-        """Flat (row-major) indices of the ROI pixels that the target's triangles may cover
-        (their projections grown by ``_COVER_MARGIN_PX``); every pixel when a vertex is not in
-        front of the camera.  The other pixels' rays would miss: they are not cast."""
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], tuple[int, int, int, int]]:
+        """The ROI pixels that the target's triangles may cover (their projections grown by
+        ``_COVER_MARGIN_PX``; every pixel when a vertex is not in front of the camera): flat
+        indices in the ROI and in the frame, and the box (rows, columns) holding them.  The
+        other pixels' rays would miss: they are not cast."""
         sc = self._scene
         i0, i1, j0, j1 = roi
         rh, rw = j1 - j0, i1 - i0
+        w = cam.resolution_px[0]
+        cover = np.zeros((rh, rw), np.bool_)
         pts = sc.vertices @ R_kM.T + p_MinCk
         y = pts[:, 1]
         if np.any(y <= 1e-9):
-            return np.arange(rh * rw, dtype=np.int64)
-        f, (cu, cv) = cam.focal_px, cam.principal_point_px
-        uv = np.empty((len(pts), 2))
-        uv[:, 0] = cu + f * pts[:, 0] / y - i0
-        uv[:, 1] = cv + f * pts[:, 2] / y - j0
-        cover = np.zeros((rh, rw), np.bool_)
-        _coverage(uv[sc.faces], rh, rw, _COVER_MARGIN_PX, cover)
-        return np.flatnonzero(cover)
+            cover[:] = True
+        else:
+            f, (cu, cv) = cam.focal_px, cam.principal_point_px
+            uv = np.empty((len(pts), 2))
+            uv[:, 0] = cu + f * pts[:, 0] / y - i0
+            uv[:, 1] = cv + f * pts[:, 2] / y - j0
+            _coverage(uv[sc.faces], rh, rw, _COVER_MARGIN_PX, cover)
+        pix, at, r0, r1, c0, c1 = _covered_pixels(cover, i0, j0, w)
+        return pix, at, (int(r0), int(r1), int(c0), int(c1))
 
     def _cast(
         self,
@@ -686,30 +730,21 @@ class StereoRenderer:
         shade_centre = n == 1 and sun_M is not None
         if not (truth or sun_M is not None):
             return _CameraFrame(signal, empty, depth, hit_map, mask)
-        pix = self._covered(cam, R_kM, p_MinCk, roi)
+        pix, at, support = self._covered(cam, R_kM, p_MinCk, roi)
         if pix.size == 0:
             return _CameraFrame(signal, empty, depth, hit_map, mask)
-        rw = i1 - i0
-        rows, cols = pix // rw, pix % rw
-        at = (rows + j0) * w + (cols + i0)  # flat indices in the frame
         if truth or shade_centre:
             prim, hit, dep, level = self._cast(
                 cam, R_kM, p_MinCk, sun_M, roi, pix, 1, shade_centre, truth
             )
             if shade_centre:
-                signal.reshape(-1)[at] = level
+                _scatter(at, level, signal.reshape(-1))
             if truth:
                 assert depth is not None and hit_map is not None and mask is not None
-                mask.reshape(-1)[at] = prim >= 0
-                depth.reshape(-1)[at] = dep
-                hit_map.reshape(-1, 3)[at] = hit
+                _scatter(at, prim >= 0, mask.reshape(-1))
+                _scatter(at, dep, depth.reshape(-1))
+                _scatter(at, hit, hit_map.reshape(-1, 3))
         if n > 1 and sun_M is not None:
             level = self._cast(cam, R_kM, p_MinCk, sun_M, roi, pix, n, True, False)[3]
-            signal.reshape(-1)[at] = level
-        support = (
-            j0 + int(rows[0]),
-            j0 + int(rows[-1]) + 1,
-            i0 + int(cols.min()),
-            i0 + int(cols.max()) + 1,
-        )
+            _scatter(at, level, signal.reshape(-1))
         return _CameraFrame(signal, support, depth, hit_map, mask)
