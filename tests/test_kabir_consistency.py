@@ -44,10 +44,14 @@ def test_rk4_attitude_error_and_substeps():
 def test_derived_sigma_o_close_to_the_papers_where_the_truncation_is_small():
     # at 0.025 Hz the sensor noise dominates: sigma_o ~ 0.95 sigma_p / dt = 9.5e-6 (paper 1e-5);
     # at 0.175 Hz eq. 27's truncation dominates: 2.4e-3 rad/s RMS, 2.4x the paper's 1e-3
-    out = {}
+    out, stencil = {}, {}
     for f in (0.025, 0.175):
         s = load_scenario("kabir2025").with_updates(
-            **{"target.omega0_T_rad_s": list(2 * np.pi * f * np.array([2, 1, 2]) / 3)}
+            **{
+                "target.omega0_T_rad_s": list(2 * np.pi * f * np.array([2, 1, 2]) / 3),
+                # the paper's torque-free truth (no process-noise term in sigma_o)
+                "process_noise.rotational_rad2_s4": 0.0,
+            }
         )
         s = s.with_updates(
             **{
@@ -58,12 +62,18 @@ def test_derived_sigma_o_close_to_the_papers_where_the_truncation_is_small():
             }
         )
         truth, meas = simulate(s.with_updates(duration_s=30.0), 0)
-        tun = U.parse_tuning(s.estimator.tuning)
         g = U.geometry(s, meas.t, meas)
-        z, R = U.stereo_measurements(meas, tun)
-        out[f] = F.prepare(s, meas.t, z, R, g, tun).derived
+        for model, dest in (("instantaneous", out), ("stencil", stencil)):
+            # the paper's flow model (A omega at t): eq. 27's truncation is noise to it
+            tun = U.parse_tuning({**s.estimator.tuning, "flow_model": model})
+            z, R = U.stereo_measurements(meas, tun)
+            dest[f] = F.prepare(s, meas.t, z, R, g, tun).derived
     assert 0.9e-5 < out[0.025]["sigma_flow_rad_s"] < 1.2e-5
     assert 1.5e-3 < out[0.175]["sigma_flow_rad_s"] < 1.2e-2  # measured 2.4e-3
+    # the stencil model predicts the truncation: the sensor noise (and the process noise over
+    # +- 2 dt) remain at every frequency
+    for f in (0.025, 0.175):
+        assert 0.9e-5 < stencil[f]["sigma_flow_rad_s"] < 1.5e-5
 
 
 def test_explicit_tuning_far_from_the_scenario_warns_and_wins():
@@ -126,3 +136,34 @@ def test_relabelled_axes_are_mapped_back_exactly():
     Ic = Rc @ np.diag(np.exp([xc[7], 0, xc[8]])) @ Rc.T
     np.testing.assert_allclose(I / np.trace(I), Ic / np.trace(Ic), atol=1e-12)
     assert np.all(np.linalg.eigvalsh(Pc) > 0)
+
+
+def test_stencil_model_predicts_eq27_of_the_propagated_projections():
+    # a sphere (k = 0) turns at a constant rate: the projections at t +- dt, +- 2 dt are
+    # exact rotations; the model's flow must be eq. 27 of them (truncation included), and
+    # differ from the instantaneous flow A omega by eq. 27's truncation error
+    from tumblenav.estimators.kabir2025 import observations as O
+    from tumblenav.frontends import projections as proj
+
+    rng = np.random.default_rng(5)
+    omega_T = np.array([0.3, -0.5, 0.6])  # 0.13 Hz: a large truncation at dt = 1 s
+    q = rot.exp_quat(np.array([0.2, -0.4, 0.7]))
+    p = rng.normal(scale=0.8, size=(4, 3))
+    x = np.concatenate([omega_T, q, [0.0, 0.0], p.ravel()])
+    R_CI = np.eye(3)
+    rho0 = np.array([0.3, 10.0, -0.2])
+    cx = np.array([0.0, 0.5])
+    dt = 1.0
+    h = O.stencil_measurement_model(x[None], R_CI, rho0[None], np.zeros((1, 3)), cx, dt)[0]
+    w = []
+    for j in (-2, -1, 1, 2):
+        # q_TI(t) = exp(-omega_T t / 2)-kinematics: R_IT(t) = R_IT(0) exp([omega_T] t)
+        R_IT = rot.quat_to_matrix(q).T @ rot.exp_map(omega_T * j * dt)
+        rho = rho0 + p @ (R_CI @ R_IT).T
+        w.append(proj.kabir_h(rho, rho0, np.zeros(3), cx)[..., 0:4])
+    stencil = (w[0] - 8 * w[1] + 8 * w[2] - w[3]) / (12 * dt)
+    # to the RK4 substeps' error (4 x 0.21^5 / 1920 = 9e-7 rad of attitude per step)
+    np.testing.assert_allclose(h[:, 5:9], stencil, rtol=0, atol=1e-6)
+    inst = O.measurement_model(x[None], R_CI, rho0[None], np.zeros((1, 3)), cx)[0]
+    np.testing.assert_allclose(h[:, 0:5], inst[:, 0:5])
+    assert np.abs(h[:, 5:9] - inst[:, 5:9]).max() > 1e-4  # the truncation it models

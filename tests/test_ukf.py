@@ -145,6 +145,12 @@ def test_paper_tuning_per_frequency_and_bad_input():
         "q_omega_var": 2.5e-5,
         "q_quat_var": 4e-6,
         "sigma_flow_rad_s": 1e-3,
+        # the paper's Q of k and features and its observation model, now explicit (issue 18:
+        # the defaults follow the scenario)
+        "q_k_var": 3.6e-5,
+        "q_feature_var": 1e-6,
+        "flow_model": "instantaneous",
+        "use_disparity": True,
     }
     assert K.tumbling_frequency_hz(kabir(0.125)) == pytest.approx(0.125)
     with pytest.raises(InputError, match="0.1 Hz"):

@@ -32,7 +32,10 @@ from tumblenav.estimators.kabir2025.model import (
     layout,
     propagate_rotation,
 )
-from tumblenav.estimators.kabir2025.observations import measurement_model
+from tumblenav.estimators.kabir2025.observations import (
+    measurement_model,
+    stencil_measurement_model,
+)
 from tumblenav.estimators.kabir2025.tuning import (
     KabirTuning,
     derive_tuning,
@@ -57,14 +60,23 @@ class _UKFModel:
     tun: KabirTuning
     variant: Variant
     N: int
+    dt: float  # the (uniform) sample interval: eq. 27's stencil in the flow model
 
     @classmethod
-    def make(cls, d: int, N: int, geom: KabirGeometry, tun: KabirTuning, variant: Variant):
+    def make(
+        cls,
+        d: int,
+        N: int,
+        geom: KabirGeometry,
+        tun: KabirTuning,
+        variant: Variant,
+        dt: float = 1.0,
+    ):
         gate = None
         if tun.gate_probability is not None:
             gate = stats.chi2.ppf(tun.gate_probability, np.arange(10))  # by dof 0..9
         ut = _Unscented.make(d, tun.alpha, tun.beta, tun.kappa)
-        return cls(ut, _process_noise(tun, N, variant), gate, geom, tun, variant, N)
+        return cls(ut, _process_noise(tun, N, variant), gate, geom, tun, variant, N, dt)
 
     @property
     def additive(self) -> bool:
@@ -76,32 +88,53 @@ class _UKFModel:
         X = x[:, None, :] + off if self.additive else _boxplus(x[:, None, :], off)
         return X, off, rep
 
-    def predict(self, x: Array, P: Array, dt: float) -> tuple[Array, Array, NDArray[np.bool_]]:
-        """Kabir 2025 eq. 13-15 for B runs over ``dt``; also the runs repaired."""
+    def predict(
+        self, x: Array, P: Array, dt: float, coast: NDArray[np.bool_] | None = None
+    ) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """Kabir 2025 eq. 13-15 for B runs over ``dt``; also the runs repaired.
+
+        ``coast`` (B,): runs that had no measurement at the previous epoch (a loss of every
+        feature: the filter only propagates). For them the mean is the propagated centre
+        point and the covariance ``sum_i>0 W_i (X_i - X_0)(X_i - X_0)^T``, the linearised
+        (divided-difference) propagation of P: the scaled transform's large negative centre
+        weight (alpha = 0.1: W_0 ~ -99) extrapolates the curvature of hundreds of steps of
+        uncorrected propagation, and drove the rate of ukf-mult to 1e4 deg/s through Kabir's
+        1500-s occlusion (tumblenav default).
+        """
         Wm = self.ut.Wm
+        B = x.shape[0]
+        coast = np.zeros(B, dtype=bool) if coast is None else np.asarray(coast, dtype=bool)
         X, _, rep = self.sigma(x, P)
         w, q = propagate_rotation(X[..., 0:3], X[..., 3:7], X[..., 7:9], dt)
         if self.additive:
             X = np.concatenate([w, q, X[..., 7:]], axis=-1)
-            x = Wm @ X
+            x = np.where(coast[:, None], X[:, 0], Wm @ X)
             D = X - x[:, None, :]
             x[:, 3:7] /= np.linalg.norm(x[:, 3:7], axis=-1, keepdims=True)
         else:
             q = q / np.linalg.norm(q, axis=-1, keepdims=True)
             X = np.concatenate([w, q, X[..., 7:]], axis=-1)
-            x = Wm @ X
+            x = np.where(coast[:, None], X[:, 0], Wm @ X)
             # mean attitude: the weighted mean e_bar of the sigma points' errors e_i about the
             # propagated centre point, and their deviations e_i - e_bar (BCH: exact to
             # O(|e_i| |e_bar|), e_bar being second order in the spread)
             qc = q[:, 0]
             e = rot.boxminus_fast(q, qc[:, None, :])
-            e_bar = Wm @ e
+            e_bar = np.where(coast[:, None], 0.0, Wm @ e)
             x[:, 3:7] = rot.boxplus_fast(qc, e_bar)
             D = np.concatenate(
                 [w - x[:, None, 0:3], e - e_bar[:, None, :], X[..., 7:] - x[:, None, 7:]],
                 axis=-1,
             )
-        return x, self.ut.cov(D, D) + self.Q, rep
+        P = self.ut.cov(D, D)
+        if coast.any():
+            Dc = D[coast, 1:]
+            Pc = np.swapaxes(Dc * Wm[1:, None], -1, -2) @ Dc
+            P[coast] = Pc
+        P = P + self.Q
+        if not self.additive:  # a long occlusion is all predictions: hold the lost attitude
+            P = _cap_attitude(P)
+        return x, P, rep
 
     def update(
         self, x: Array, P: Array, k: int, zk: Array, Rk: Array, rows: NDArray[np.bool_]
@@ -113,9 +146,13 @@ class _UKFModel:
         B, M, d = x.shape[0], 9 * N, P.shape[-1]
         diag = np.arange(M)
         X, off, rep = self.sigma(x, P)
-        Z = measurement_model(
-            X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x
-        ).reshape(B, -1, M)
+        if self.tun.flow_model == "stencil" and np.any(rows.reshape(B, N, 9)[..., 5:]):
+            Z = stencil_measurement_model(
+                X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x, self.dt
+            )
+        else:
+            Z = measurement_model(X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x)
+        Z = Z.reshape(B, -1, M)
         zh = ut.Wm @ Z
         dZ = Z - zh[:, None, :]
         S0 = ut.cov(dZ, dZ)
@@ -177,7 +214,7 @@ def _filter(
     M = 9 * N
     nom = 9 + 3 * N
     d = P0.shape[-1]
-    m = _UKFModel.make(d, N, geom, tun, variant)
+    m = _UKFModel.make(d, N, geom, tun, variant, _sample_interval(t))
     if Q is not None:  # per run (B, d, d): each run's derived tuning
         m = dataclasses.replace(m, Q=np.asarray(Q, dtype=float))
     z = z.reshape(B, n, M)
@@ -193,6 +230,7 @@ def _filter(
     repairs = np.zeros(B, dtype=np.int64)
     diverged_at = np.full(B, -1, dtype=np.int64)
     alive = np.ones(B, dtype=bool)
+    coast = np.zeros(B, dtype=bool)  # no measurement at the previous epoch
     k0 = np.zeros(B, dtype=np.int64) if k0 is None else np.asarray(k0, dtype=np.int64)
     skip_first = np.zeros(B, dtype=bool) if skip_first is None else np.asarray(skip_first)
     x0 = np.asarray(x0, dtype=float)
@@ -204,7 +242,7 @@ def _filter(
             x_prev, P_prev = x, P
             try:
                 if k > 0:
-                    x, P, rep = m.predict(x, P, t[k] - t[k - 1])
+                    x, P, rep = m.predict(x, P, t[k] - t[k - 1], coast)
                     repairs[rep & alive & (k > k0)] += 1
                 fresh = k0 == k
                 if fresh.any():  # runs starting now (before: placeholders, not reported)
@@ -212,6 +250,7 @@ def _filter(
                     P = np.where(fresh[:, None, None], P0, P)
                 started = k >= k0
                 rows = usable[:, k] & (alive & started & ~(fresh & skip_first))[:, None]
+                coast = ~rows.any(axis=1)
                 if rows.any():
                     x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows)
                     repairs[rep & alive] += 1
@@ -273,20 +312,22 @@ class UKFSteps:
     def predict(self, belief: Belief, t: float) -> Belief:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             try:
-                x, P, rep = self.model.predict(belief.x[None], belief.P[None], t - belief.t)
+                coast = np.array([bool((belief.memo or {}).get("coast", False))])
+                x, P, rep = self.model.predict(belief.x[None], belief.P[None], t - belief.t, coast)
             except np.linalg.LinAlgError:  # update() sees a non-finite state: diverged
                 x, P, rep = (
                     np.full((1,) + belief.x.shape, np.nan),
                     belief.P[None],
                     np.array([False]),
                 )
-        return Belief(t, x[0], P[0], self.layout, memo=int(rep[0]))
+        return Belief(t, x[0], P[0], self.layout, memo={"repairs": int(rep[0])})
 
     def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
-        repairs = belief.memo or 0
+        repairs = int((belief.memo or {}).get("repairs", 0))
         rows = (np.isfinite(self.z[k]) & np.isfinite(self.Rv[k]))[None]
         if started and self.skip_first:
             rows = np.zeros_like(rows)
+        coast = {"coast": not bool(rows.any())}
         x, P = belief.x[None], belief.P[None]
         nis, dof, rej = float("nan"), 0, 0
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -301,13 +342,18 @@ class UKFSteps:
             except np.linalg.LinAlgError:
                 ok = False
         skipped = {"covariance_repairs": repairs}
-        out = Belief(belief.t, x[0], P[0], self.layout)
+        out = Belief(belief.t, x[0], P[0], self.layout, memo=coast)
         if not ok:
             return belief, StepInfo(diverged=True, skipped=skipped)
         return out, StepInfo(nis=nis, dof=dof, rejected=rej, skipped=skipped)
 
     def report(self, belief: Belief, k: int) -> Array:
         return belief.P
+
+
+def _sample_interval(t: Array) -> float:
+    """The median step of ``t`` (s; 1 for a single epoch): eq. 27's ``dt``."""
+    return float(np.median(np.diff(t))) if len(t) > 1 else 1.0
 
 
 # A run is stopped (counted as diverged) once its state or covariance is no longer finite or
@@ -373,7 +419,16 @@ def prepare(
     pn = getattr(scenario, "process_noise", None)
     q_r = float(getattr(pn, "rotational_rad2_s4", 0.0) or 0.0)
     derived = derive_tuning(
-        x[0:3], x[7:9], R_CT @ x[0:3], rho, geom.rho0_C[k0], geom.centres_x, dt, sigma_p, q_r
+        x[0:3],
+        x[7:9],
+        R_CT @ x[0:3],
+        rho,
+        geom.rho0_C[k0],
+        geom.centres_x,
+        dt,
+        sigma_p,
+        q_r,
+        tun.flow_model,
     )
     tun_r, warns = resolve_tuning(tun, derived)
     R_diag = np.array(R_diag, dtype=float)
@@ -451,7 +506,9 @@ def run_ukf(
         P0 = error_to_filter_cov(np.asarray(x0), st.P0_err, variant)
     n = len(t)
     steps = UKFSteps(
-        model=_UKFModel.make(np.asarray(P0).shape[-1], N, geom, prep.tuning, variant),
+        model=_UKFModel.make(
+            np.asarray(P0).shape[-1], N, geom, prep.tuning, variant, _sample_interval(t)
+        ),
         t=t,
         z=z.reshape(n, 9 * N),
         Rv=prep.R_diag.reshape(n, 9 * N),

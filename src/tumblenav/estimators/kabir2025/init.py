@@ -159,10 +159,11 @@ def _principal(I_G: Array, ref: Array | None = None) -> tuple[Array, Array]:
 
 
 def _triangulate(z: Array, geom: KabirGeometry) -> tuple[Array, NDArray[np.bool_]]:
-    """Features in C (n, N, 3) from ``[u_R, v_R, u_L, disparity]``, and where available."""
+    """Features in C (n, N, 3) from ``[u_R, v_R, u_L]`` (the disparity ``u_L - u_R``), and
+    where available."""
     cl, cr = geom.centres_x
-    ok = np.all(np.isfinite(z[..., [0, 1, 2, 4]]), axis=-1)
-    y = (cr - cl) / z[..., 4]
+    ok = np.all(np.isfinite(z[..., [0, 1, 2]]), axis=-1)
+    y = (cr - cl) / (z[..., 2] - z[..., 0])
     rho = np.stack([z[..., 2] * y + cl, y, z[..., 1] * y], -1)
     return np.where(ok[..., None], rho, np.nan), ok
 
@@ -357,10 +358,10 @@ def _triangulated_start(t: Array, z: Array, geom: KabirGeometry) -> tuple[Array,
     second-order difference of the first three epochs' projections (else ``z[0]``'s flow)."""
     z0 = z[0]
     cl, cr = geom.centres_x
-    ok = np.all(np.isfinite(z0[:, [0, 1, 2, 4]]), axis=1)
+    ok = np.all(np.isfinite(z0[:, [0, 1, 2]]), axis=1)
     if ok.sum() < 2:
         raise InputError("estimator.tuning.init: 'triangulated' needs >= 2 stereo features at t0")
-    y = (cr - cl) / z0[:, 4]  # disparity u_L - u_R = b / y
+    y = (cr - cl) / (z0[:, 2] - z0[:, 0])  # disparity u_L - u_R = b / y
     rho = np.stack([z0[:, 2] * y + cl, y, z0[:, 1] * y], -1)
     rho0 = geom.rho0_C[0]
     flow = z0[:, 5:9]

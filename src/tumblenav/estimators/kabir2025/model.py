@@ -229,7 +229,8 @@ def _process_noise(tun: KabirTuning, N: int, variant: Variant) -> Array:
         v = [qw] * 3 + [qq] * 4
     else:
         v = [qw] * 3 + [4.0 * qq] * 3
-    return np.diag(v + [tun.q_k_var] * 2 + [tun.q_feature_var] * (3 * N))
+    qk, qf = tun.q_k_var or 0.0, tun.q_feature_var or 0.0  # null: derived, 0 (rigid body)
+    return np.diag(v + [qk] * 2 + [qf] * (3 * N))
 
 
 def _filter_layout(n_features: int, variant: Variant) -> StateLayout:

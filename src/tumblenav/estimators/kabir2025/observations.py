@@ -32,6 +32,38 @@ def measurement_model(
     return proj.kabir_h(rho, rho0_C, omega_C, centres_x, rho0_dot_C)
 
 
+# Kabir 2025 eq. 27's five-point stencil: offsets (in dt) and weights (over 12 dt)
+_STENCIL = ((-2, 1.0), (-1, -8.0), (1, 8.0), (2, -1.0))
+
+
+def stencil_measurement_model(
+    x: Array, R_CI: Array, rho0_C: Array, rho0_dot_C: Array, centres_x: Array, dt: float
+) -> Array:
+    """:func:`measurement_model` with the flow replaced by what eq. 27 makes of the predicted
+    projections (tumblenav default ``flow_model: stencil``): each state ``x`` (..., nominal)
+    is propagated by the torque-free model (:func:`~.model.propagate_rotation`, the inertia
+    and features fixed) to ``t +- dt``, ``t +- 2 dt``, its projections there (the mass centre
+    moving at ``rho0_dot_C``) go through the stencil
+    ``(-w(t+2dt) + 8 w(t+dt) - 8 w(t-dt) + w(t-2dt)) / (12 dt)``, exactly as the measured
+    flow does, so that eq. 27's truncation error is part of the model rather than of the
+    noise."""
+    from tumblenav.estimators.kabir2025.model import propagate_rotation
+
+    h = measurement_model(x, R_CI, rho0_C, rho0_dot_C, centres_x)
+    flow = np.zeros(h.shape[:-1] + (4,))
+    for side in (1, -1):
+        xs = x.copy()
+        for step in (1, 2):
+            w, q = propagate_rotation(xs[..., 0:3], xs[..., 3:7], xs[..., 7:9], side * dt)
+            xs = np.concatenate([w, q, xs[..., 7:]], axis=-1)
+            r0 = rho0_C + side * step * dt * rho0_dot_C
+            wj = measurement_model(xs, R_CI, r0, rho0_dot_C, centres_x)[..., 0:4]
+            weight = dict(_STENCIL)[side * step]
+            flow += weight * wj
+    h[..., 5:9] = flow / (12.0 * dt)
+    return h
+
+
 def projection_sigmas(tun: KabirTuning, meas: Any) -> tuple[float, float]:
     """``(sigma_p, sigma_d)`` (rad) of Kabir 2025 eq. 24: as given in the tuning, or by its
     rules (``'sensor'``: the measurements' ``noise_px / focal_px``; ``'sigma_p'``)."""
@@ -65,7 +97,10 @@ def stereo_measurements(meas: Any, tuning: KabirTuning | None = None) -> tuple[A
     flow = proj.finite_difference_rate(w, float(dts[0]))
     if tun.frontend.flow_edges == "drop":
         flow = np.where(proj.finite_difference_order(w) == 4, flow, np.nan)
-    z = np.concatenate([w, w[..., 2:3] - w[..., 0:1], flow], axis=-1)
+    disparity = w[..., 2:3] - w[..., 0:1]
+    if not tun.use_disparity:  # u_L - u_R of the projections already in z: no information
+        disparity = np.full_like(disparity, np.nan)
+    z = np.concatenate([w, disparity, flow], axis=-1)
     sp, sd = projection_sigmas(tun, meas)
     so = tun.sigma_flow_rad_s
     if so is None:  # derived later (filter.prepare); meanwhile the sensor noise through eq. 27

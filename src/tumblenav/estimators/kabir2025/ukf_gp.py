@@ -131,7 +131,10 @@ def pseudo_measurements(
             tun.frontend.flow_edges == "drop"
         ):  # as for measured flows: only where eq. 27 is 4th order
             flow = np.where(proj.finite_difference_order(w4) == 4, flow, np.nan)
-        zi = np.concatenate([w4, mean[:, 2:3] - mean[:, 0:1], flow], axis=1)
+        disparity = mean[:, 2:3] - mean[:, 0:1]
+        if not tun.use_disparity:  # as for the measurements (stereo_measurements)
+            disparity = np.full_like(disparity, np.nan)
+        zi = np.concatenate([w4, disparity, flow], axis=1)
         z[missing, i, :] = zi[missing]
         if tun.gp_variance == "predictive":
             v = var + (0.1 * sigma_p) ** 2
