@@ -42,6 +42,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from threadpoolctl import threadpool_limits
 
 from tumblenav import evaluation, io
 from tumblenav.campaign.store import CampaignStore, code_fingerprint, run_seed
@@ -61,7 +62,17 @@ MAX_POOL_RESTARTS = 3  # worker pools that may break in a row, storing nothing, 
 def evaluate_runs(
     scenario: Scenario, estimator_name: str, base_seed: int, ks: Sequence[int]
 ) -> list[tuple[int, Any, str | None]]:
-    """Simulate, estimate and evaluate runs ``ks``; returns (k, RunErrors | None, error)."""
+    """Simulate, estimate and evaluate runs ``ks``; returns (k, RunErrors | None, error).
+    BLAS runs on one thread meanwhile: the filters' matrices are small, a campaign has one
+    worker per core already, and OpenBLAS's spinning threads made one ekf-pose run cost 152 s
+    of CPU instead of 26 s (measured, docs/results/chang2021.md)."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _evaluate_runs(scenario, estimator_name, base_seed, ks)
+
+
+def _evaluate_runs(
+    scenario: Scenario, estimator_name: str, base_seed: int, ks: Sequence[int]
+) -> list[tuple[int, Any, str | None]]:
     from tumblenav.frontends import stages
 
     est = est_base.get(estimator_name)
