@@ -85,11 +85,13 @@ class PoseEKF:
         tun = parse_tuning(scenario.estimator.tuning, PoseTuning)
         orbit = scenario.chaser.orbit
         n = float(orbit.mean_motion_rad_s) if orbit is not None else 0.0
+        pn = scenario.process_noise  # the mission's disturbance assumption (never the truth)
+        q_r, q_t = float(pn.rotational_rad2_s4), float(pn.translational_m2_s4)
         steps: PoseSteps | StateSteps
         if tun.map == "state":
-            steps = StateSteps(meas=meas, tun=tun, n_orbit=n)
+            steps = StateSteps(meas=meas, tun=tun, n_orbit=n, q_rot=q_r, q_trans=q_t)
         else:
-            steps = PoseSteps(meas=meas, tun=tun, n_orbit=n)
+            steps = PoseSteps(meas=meas, tun=tun, n_orbit=n, q_rot=q_r, q_trans=q_t)
         r = fold(steps, meas.t)
         skipped = {k: 0 for k in SKIP_REASONS} | r.skipped
         info: dict[str, Any] = {

@@ -71,12 +71,28 @@ Array = NDArray[np.float64]
 _MAX_SIGMA = 1e6  # a covariance beyond this (or not finite) means the run diverged
 
 
-def rate_process_noise(x: Array, tun: PoseTuning, n: float) -> float:
+def disturbance_rate_noise(tun: PoseTuning, q_r: float) -> float:
+    """The rate random walk (rad^2/s^3, per axis of That) that the scenario's disturbance
+    torque causes (``process_noise.rotational_rad2_s4`` = ``q_r``: the angular acceleration's
+    spectral density about the axis of largest moment; about axis ``i`` it is ``q_r (I_max /
+    I_i)^2``, :mod:`tumblenav.dynamics.disturbances`). That is not the principal frame and the
+    inertia is unknown, so one isotropic value: the mean over the axes of ``(I_max / I_i)^2``,
+    from the given inertia or, with inertia 'sphere', for moments ``k`` (inertia_asymmetry)
+    apart, ``(1 + k)^2`` (tumblenav default). ``rate_noise_rad2_s3``, when set, replaces it."""
+    if tun.rate_noise_rad2_s3 is not None:
+        return float(tun.rate_noise_rad2_s3)
+    if tun.inertia == "given":
+        ev = np.linalg.eigvalsh(tun.inertia_matrix())
+        return float(q_r * np.mean((ev.max() / ev) ** 2))
+    return float(q_r * (1.0 + tun.inertia_asymmetry) ** 2)
+
+
+def rate_process_noise(x: Array, tun: PoseTuning, n: float, q_dist: float = 0.0) -> float:
     """Spectral density (rad^2/s^3) of the rate random walk: with inertia 'sphere' the
     unmodelled Euler term, ``2 k^2 |omega_TI|^3 / 27`` (``k``: inertia_asymmetry; the term's
-    per-axis RMS ``k |omega|^2 / 3`` over a correlation time ``1/|omega|``), plus
-    ``rate_noise_rad2_s3``."""
-    q = tun.rate_noise_rad2_s3
+    per-axis RMS ``k |omega|^2 / 3`` over a correlation time ``1/|omega|``), plus the
+    disturbance torque's ``q_dist`` (:func:`disturbance_rate_noise`)."""
+    q = q_dist
     if tun.inertia == "sphere":
         w_ti = x[X_RATE] + rot.quat_to_matrix(x[X_ATT]) @ omega_LI_L(n)
         q += 2.0 * tun.inertia_asymmetry**2 * float(np.linalg.norm(w_ti)) ** 3 / 27.0
@@ -101,6 +117,24 @@ class TrackSteps:
     meas: Any
     tun: PoseTuning
     n_orbit: float
+    q_rot: float = 0.0  # the scenario's process_noise.rotational_rad2_s4 (rad^2/s^3)
+    q_trans: float = 0.0  # the scenario's process_noise.translational_m2_s4 (m^2/s^3)
+
+    @functools.cached_property
+    def q_rate_dist(self) -> float:
+        """The disturbance torque's rate random walk (:func:`disturbance_rate_noise`)."""
+        return disturbance_rate_noise(self.tun, self.q_rot)
+
+    @functools.cached_property
+    def q_accel(self) -> float:
+        """White-acceleration spectral density of the CW model: ``accel_noise_m2_s3`` or the
+        scenario's ``process_noise.translational_m2_s4``."""
+        a = self.tun.accel_noise_m2_s3
+        return float(self.q_trans if a is None else a)
+
+    def rate_noise(self, x: Array) -> float:
+        """The rate random walk's spectral density at ``x`` (:func:`rate_process_noise`)."""
+        return rate_process_noise(x, self.tun, self.n_orbit, self.q_rate_dist)
 
     @functools.cached_property
     def tracks(self) -> FeatureTracks:
@@ -147,9 +181,14 @@ class PoseSteps(TrackSteps):
 
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t
-        q_rate = rate_process_noise(belief.x, self.tun, self.n_orbit)
         x, P = propagate(
-            belief.x, belief.P, dt, self.inertia, self.n_orbit, q_rate, self.tun.accel_noise_m2_s3
+            belief.x,
+            belief.P,
+            dt,
+            self.inertia,
+            self.n_orbit,
+            self.rate_noise(belief.x),
+            self.q_accel,
         )
         return Belief(t, x, P, LAYOUT, belief.memo)
 

@@ -99,6 +99,8 @@ class Start:
     fmap: FeatureMap
     k0: int
     origin_L_k0: Array
+    omega_k0: Array | None = None  # the rate line's value at k0 (in That) and its covariance
+    P_omega_k0: Array | None = None
 
 
 def start(
@@ -185,8 +187,11 @@ def start(
         G += Bk.T @ Wk @ Bk
         g += Bk.T @ Wk @ w_T
     Gi = np.linalg.inv(G)
-    omega = (Gi @ g)[:3]
+    line = Gi @ g
+    omega = line[:3]
     P_omega = Gi[:3, :3]
+    B0 = np.hstack([np.eye(3), (t0 - t_end) * np.eye(3)])  # the line at k0 (the replay's start)
+    omega_k0, P_omega_k0 = B0 @ line, B0 @ Gi @ B0.T
 
     # The window's map origin c(t) has errors correlated from epoch to epoch (the map is built
     # from its own poses), which the LS treats as independent: along the weakly observed
@@ -209,7 +214,9 @@ def start(
     P[E_RATE, E_RATE] = P_omega
     sl = np.r_[np.arange(E_POS.start, E_VEL.stop), np.arange(E_OFF.start, E_OFF.stop)]
     P[np.ix_(sl, sl)] = P_rvb
-    return Start(k_end, x, 0.5 * (P + P.T), fmap, k0, rows[0][2])
+    return Start(
+        k_end, x, 0.5 * (P + P.T), fmap, k0, rows[0][2], omega_k0, 0.5 * (P_omega_k0 + P_omega_k0.T)
+    )
 
 
 def _lever_cov(s: Array, P_att: Array) -> Array:

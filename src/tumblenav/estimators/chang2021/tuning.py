@@ -97,6 +97,25 @@ class PoseTuning(BaseModel):
         "the q-method covariance leaves out) and the q-method's nonlinearity; a filter off by "
         "a few degrees over 5 s is diverged, not noisy",
     )
+    start_passes: int = Field(
+        3,
+        ge=1,
+        description="with start_replay: how many times the start window is replayed; each "
+        "pass after the first starts from the previous pass's mass centre and velocity at "
+        "the window's end, propagated back to k0 (the prior covariance unchanged: a "
+        "relinearisation, as an iterated filter). The window's mass-centre fit can be ~0.8 m "
+        "off along the rotation axis (the direction one window's rotation hardly observes) "
+        "and a filter linearised there takes spurious information along it: on "
+        "chang2021_close point tracks (seeds 0-1, window 40-120 s) NEES/dof 2.08 with 1 "
+        "pass (per block attitude 2.3, position 4.6), 1.22 with 2, 1.04 with 3 (attitude "
+        "1.65, position 1.5); each pass costs init_frames filter steps",
+    )
+    release_axis: bool = Field(
+        True,
+        description="with start_replay: after the replay the mass centre along the rotation "
+        "axis gets prior_mass_centre_sigma_m back (the window does not observe it; the "
+        "linearised filter claims it does: see slam.StateSteps._release_axis)",
+    )
     init_frames: int = Field(
         100,
         ge=3,
@@ -128,17 +147,20 @@ class PoseTuning(BaseModel):
         "~ 1/|omega|, so the rate random walk gets the spectral density "
         "2 k^2 |omega_TI|^3 / 27 (rad^2/s^3), from the current rate estimate",
     )
-    rate_noise_rad2_s3: float = Field(
-        1e-10,
+    rate_noise_rad2_s3: float | None = Field(
+        None,
         ge=0,
-        description="rate random-walk spectral density added in any case (unmodelled "
-        "torques; with inertia 'given' the only rate process noise)",
+        description="rate random-walk spectral density of the disturbance torque (rad^2/s^3, "
+        "per axis of That; added to the Euler term of inertia 'sphere'). None (default): "
+        "derived from the scenario's process_noise.rotational_rad2_s4 q_r (about the axis of "
+        "largest moment): q_r times the mean over the axes of (I_max/I_i)^2, i.e. (1 + "
+        "inertia_asymmetry)^2 with inertia 'sphere', from inertia_kg_m2 with 'given'",
     )
-    accel_noise_m2_s3: float = Field(
-        1e-10,
+    accel_noise_m2_s3: float | None = Field(
+        None,
         ge=0,
-        description="white-acceleration spectral density of the CW model (m^2/s^3): the "
-        "neglected nonlinear and J2 relative accelerations at <100 m are < 1e-8 m/s^2",
+        description="white-acceleration spectral density of the CW model (m^2/s^3). None "
+        "(default): the scenario's process_noise.translational_m2_s4",
     )
     use_rate_velocity: bool = Field(
         False,
