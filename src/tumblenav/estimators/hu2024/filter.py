@@ -455,7 +455,8 @@ def frontend(meas_list, tun: HuTuning, q_r: float = 0.0) -> stereo_points.Points
             max_dpacf_sigma_rad=max(fe.dpacf_emit_sigma_rad, tun.max_dpacf_sigma_rad),
             g_fit=fe.g_attitude_fit,
             template_refine_s=tuple(np.atleast_1d(np.asarray(fe.template_refine_s, float))),
-            unbiased_last=fe.ls_unbiased_rates,
+            unbiased_last=bool(fe.ls_unbiased_rates),
+            unbiased_early=fe.ls_unbiased_rates is True,
             q_r=float(q_r if fe.ls_torque_rad2_s4 == "process_noise" else fe.ls_torque_rad2_s4),
         ),
     )

@@ -127,9 +127,10 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
             )  # fmt: skip
             history.append((bounds[v], tmpl))
         Rv, cGv = R_GI[:, :m], cov_G[:, :m]
-        # the runs' last version (the rows the least squares accumulates to the end): the
-        # unbiased rate fit (see rates_and_covariance)
+        # the runs' last version (the rows the least squares accumulates to the end), and
+        # with unbiased_early every version: the unbiased rate fit (see rates_and_covariance)
         last = (bounds[v + 1] >= n) & (v > 0) & s.unbiased_last
+        last = last | (s.unbiased_early & s.unbiased_last)
         fit: dict = {}
         vers.append(
             (Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last, details=fit) + (fit,)
