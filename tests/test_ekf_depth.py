@@ -80,11 +80,13 @@ def test_ekf_depth_tracks_the_yu2019_target(tmp_path):
 
 
 def test_ekf_depth_translation_and_offset_are_consistent():
-    """The covariance of r, v and b must cover their errors.  The centroid errors of a
-    ray-cast scan are ~2x the first-order sampling variance and correlated from scan to scan,
-    so the fix covariance is inflated (tuning position_noise_scale = 4); with the first-order
-    covariance alone this run's block NEES/dof is 3.0 (measured), i.e. over-confident along
-    the spin axis, where b is only weakly observable (docs/results/yu2019.md)."""
+    """The covariance of r, v and b must cover their errors.  The centre errors of a
+    ray-cast scan come from the grid's edge phase and are correlated from scan to scan, so
+    the fix covariance models them (fixes.fix_covariance: h^2/12 in the plane, inflated for
+    the correlation at the scan's view step, position_noise_scale 2); with the first-order
+    random-sampling covariance alone this run's block NEES/dof was 3.0 (measured), i.e.
+    over-confident along the spin axis, where b is only weakly observable
+    (docs/results/yu2019.md)."""
     from tumblenav.campaign.store import run_seed
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
