@@ -211,12 +211,19 @@ def test_the_store_reads_every_run_it_wrote_whatever_its_fields(tmp_path):
             np.ones(11),
             np.full(11, 2.0),
         )
-        store.save_run(k, 1, r, {})
+        notes = ["tuning far from the scenario", "no start"][: k + 1]  # one or two lines
+        store.save_run(k, 1, r, {"warnings": notes, "skipped_gated": 4})
     _, errs, _ = collect(store, 2)
     assert set(errs) == {"attitude_deg", "dpacf_attitude_deg"}
     assert np.isnan(errs["dpacf_attitude_deg"][1]).all()
     s = summarise(store, short_hu(10.0), "ekf-dpacf", 2)
     assert s["runs"] == 2 and s["rmse"]["dpacf_attitude_deg"] == pytest.approx(1.0)
+    assert store.load(1)[1]["warnings"] == ["tuning far from the scenario", "no start"]
+    assert store.load(1)[1]["skipped_gated"] == 4
+    assert s["estimator_warnings"] == [
+        "tuning far from the scenario (2 of 2 runs)",
+        "no start (1 of 2 runs)",
+    ]
 
 
 # --- results that say when they are bad --------------------------------------------------------

@@ -161,7 +161,12 @@ class CampaignStore:
         wrote them."""
         with np.load(self.run_path(k)) as z:
             errors = {key[4:]: z[key] for key in z.files if key.startswith("err_")}
-            extra = {key[6:]: z[key].item() for key in z.files if key.startswith("extra_")}
+            # scalars as Python numbers, lists (the estimator's warnings) as lists
+            extra = {
+                key[6:]: z[key].item() if z[key].ndim == 0 else z[key].tolist()
+                for key in z.files
+                if key.startswith("extra_")
+            }
             r = RunErrors(
                 t=z["t"],
                 errors=errors,
