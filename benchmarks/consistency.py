@@ -82,7 +82,7 @@ def table(rows: list[dict]) -> str:
         br = r["branches"]
         br_s = ", ".join(f"{k} {v}" for k, v in br.items()) if br else "-"
         lines.append(
-            f"| {r['estimator']} | {r['scenario']} | {r['differs']} | {r['runs']} "
+            f"| {r['estimator']} | {Path(r['scenario']).stem} | {r['differs']} | {r['runs']} "
             f"| {c(r['nees'], r['nees_bounds'], r['nees_inside'])} "
             f"| {c(r['nis'], r['nis_bounds'], r['nis_inside'])} "
             f"| {_fmt(r['attitude_deg'])} | {_fmt(r['position_m'])} | {r['diverged']} | {br_s} |"

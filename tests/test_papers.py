@@ -223,7 +223,11 @@ def test_reproduce_yu2019_honours_runs(tmp_path, monkeypatch):
     assert [(c["noise_m"], c["multi_solution_fix"]) for c in s["cases"]] == list(yu2019.CASES)
     for c, (noise, fix) in zip(s["cases"], yu2019.CASES, strict=True):
         assert c["runs"] + c["runs_failed"] == 2
-        assert c["nees"]["bounds95"] is not None and "attitude_deg" in c["rmse"]
+        if c.get("runs_without_estimate", 0) < c["runs"]:
+            assert c["nees"]["bounds95"] is not None and "attitude_deg" in c["rmse"]
+        else:  # Yu's printed 0.1 m noise in 12 s: ekf-depth starts only on agreeing
+            # rectangles (issue 18), so it may rightly not start; the case says so
+            assert noise >= 0.1 and c["runs_without_estimate"] == c["runs"]
         folder = yu2019.case_dir(tmp_path, noise, fix)
         assert len(list((folder / "runs").glob("run_*.npz"))) == c["runs"]
         stored = yaml.safe_load((folder / "scenario.yaml").read_text())

@@ -67,6 +67,8 @@ def scenario_for(f_T_hz: float, base: Scenario | None = None) -> Scenario:
             "target.omega0_T_rad_s": (2.0 * np.pi * f_T_hz * UNIT).tolist(),
             "estimator.tuning": tuning,
             "steady_state_window_s": list(OCCLUSION_WINDOW_S),
+            # the paper's truth is torque-free (the built-in's quiet disturbance is ours)
+            "process_noise.disturb_truth": False,
         }
     )
     return with_paper_assumptions(sc)

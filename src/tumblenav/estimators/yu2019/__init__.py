@@ -93,24 +93,39 @@ class DepthEKF:
         }
         restarts = list(r.memo[1]) if r.memo is not None else []
         n_scans = len(meas.t)
+        # (said now, with the run's counts and times; kept in info["warnings"] without them,
+        # so that a campaign's summary says each once with its number of runs)
+        notes: list[tuple[str, str]] = []
         if n_scans and skipped["no_rectangle"] > 0.5 * n_scans:
-            warnings.warn(
-                f"ekf-depth recognised no rectangle in {skipped['no_rectangle']} of {n_scans} "
-                f"scans (range noise {scenario.sensor.range_noise_m:g} m, plane threshold "
-                f"{plane_threshold(tun, scenario.sensor.range_noise_m):g} m against the "
-                "model's rectangles): the filter mostly coasts, and its few fixes may be "
-                "wrong rectangles; do not trust its covariance",
-                stacklevel=2,
+            notes.append(
+                (
+                    f"ekf-depth recognised no rectangle in {skipped['no_rectangle']} of "
+                    f"{n_scans} scans (range noise {scenario.sensor.range_noise_m:g} m, plane "
+                    f"threshold {plane_threshold(tun, scenario.sensor.range_noise_m):g} m "
+                    "against the model's rectangles)",
+                    "ekf-depth recognised no rectangle in most scans",
+                )
             )
         if restarts:
-            warnings.warn(
-                f"ekf-depth lost track {len(restarts)} time(s) (every rectangle fix gated "
-                f"out for {tun.reinit_after_gated} epochs in a row) and started again at "
-                f"t = {', '.join(f'{t:g}' for t in restarts[:5])}"
-                f"{' ...' if len(restarts) > 5 else ''} s: the estimates before each restart "
-                "were off track",
-                stacklevel=2,
+            times = ", ".join(f"{t:g}" for t in restarts[:5]) + (
+                " ..." if len(restarts) > 5 else ""
             )
+            notes.append(
+                (
+                    f"ekf-depth lost track {len(restarts)} time(s) and started again at "
+                    f"t = {times} s",
+                    "ekf-depth lost track and started again",
+                )
+            )
+        tails = {
+            "ekf-depth recognised no rectangle in most scans": ": the filter mostly coasts, and "
+            "its few fixes may be wrong rectangles; do not trust its covariance",
+            "ekf-depth lost track and started again": f" (every rectangle fix gated out for "
+            f"{tun.reinit_after_gated} epochs in a row): the estimates before each restart "
+            "were off track",
+        }
+        for detailed, generic in notes:
+            warnings.warn(detailed + tails[generic], stacklevel=2)
         return EstimateHistory(
             t=meas.t,
             x=r.x,
@@ -123,6 +138,7 @@ class DepthEKF:
                 "convention": "yu2019",
                 "symmetries": steps.symmetries,  # evaluation: the model's symmetric frames
                 "reinit_times_s": restarts,  # restarts after the run lost track
+                "warnings": [generic + tails[generic] for _, generic in notes],
             },
         )
 
