@@ -60,6 +60,11 @@ class UKFGPTuning(ukf_tuning.KabirTuning):
         4, ge=1, le=12, description="period pairs scored before the full GP optimisation"
     )
     gp_workers: int = Field(1, ge=1, description="processes training the per-feature GPs")
+    gp_drift_in_r: bool = Field(
+        True,
+        description="add the disturbance drift the GP cannot know (from the scenario's process "
+        "noise) to the pseudo-measurements' R (a second filter pass); false: the paper's R",
+    )
     variant: Literal["additive", "mult"] = Field(
         "additive", description="the UKF under the GP: Kabir's additive one or ukf-mult's"
     )
@@ -166,36 +171,102 @@ def _model_summary(m: gpm.GPFit | str, T_train: float) -> dict[str, Any]:
     }
 
 
-def add_disturbance_drift(
+def drift_covariance(
     hist: EstimateHistory, t: Array, z: Array, zp: Array, q_psd: float
-) -> None:
-    """The drift the GP cannot know, added to the covariance the history reports.
+) -> tuple[Array, Array] | None:
+    """The drift the GP cannot know: (n, 6, 6) covariance over the rate and attitude errors
+    (zero outside the pseudo-measurement epochs) and the indices of those errors in ``P``.
 
     The GP extrapolates the projections as they were while the features were seen; a random
     disturbance torque after that (the scenario's process noise, white angular acceleration of
-    spectral density ``q_psd``, the largest axis's) turns the target away from that
-    extrapolation by a random walk: after ``T`` s without a real measurement, per axis, rate
-    variance ``q T`` and attitude variance ``q T^3 / 3``. Pseudo-measurements repeated every
-    epoch with that common, slowly growing error would otherwise shrink the covariance far
-    below it (measured: kabir2025 with a 1e-12 rad^2/s^3 disturbance, attitude error 1.4 deg
-    against a 3-sigma of 0.03 deg, NEES/dof 1.3e5). The drift is independent of the GP's
-    information, so its covariance adds to the filter's; only the diagonal blocks are added:
-    the expected NEES of the drift, ``trace(D^-1 P_drift)``, is the same as with its
-    rate-attitude correlation. tumblenav addition (Kabir 2025's truth is torque-free)."""
+    spectral density ``q_psd`` per axis, as the filter's Q) turns the target away from that
+    extrapolation. Its covariance ``D`` over the rate and attitude errors starts at zero at
+    the last real measurement and is propagated through the rigid-body dynamics linearised
+    along the estimate (Kabir 2025 eq. 8-10, Jacobian by finite differences)::
+
+        D_k = F_k D_{k-1} F_k^T + Q_k,   Q_k = q_psd dt I (rate)
+
+    so that a changed rate also shifts the polhode's phase (body-rate errors growing much
+    faster than ``sqrt(q T)``: measured 5e-4 rad/s after 1500 s at 1e-12 rad^2/s^3, where
+    ``sqrt(q T)`` = 4e-5). The pseudo-measurements cannot see this drift (the GP extrapolates
+    without it, and its error is common to every feature and epoch), so ``D`` is independent
+    of the filter's information and adds to its covariance (a consider term).
+    tumblenav addition (Kabir 2025's truth is torque-free)."""
     if q_psd <= 0.0 or hist.P is None or len(t) != hist.P.shape[0]:
-        return
+        return None
     real = np.any(np.isfinite(z[..., 0]), axis=1)
     pseudo = np.any(np.isfinite(zp[..., 0]) & ~np.isfinite(z[..., 0]), axis=1) & ~real
     if not pseudo.any():
-        return
-    last = np.maximum.accumulate(np.where(real, np.arange(len(t)), 0))
-    T = np.where(pseudo, t - t[last], 0.0)
+        return None
     lay = hist.layout
-    ia, ir = lay.err("attitude"), lay.err("rate")
-    for k in np.flatnonzero(pseudo):
-        P = hist.P[k]
-        P[ir, ir] += q_psd * T[k] * np.eye(3)
-        P[ia, ia] += q_psd * T[k] ** 3 / 3.0 * np.eye(3)
+    nr, na, nk = lay.nom("rate"), lay.nom("attitude"), lay.nom("inertia")
+    idx = np.r_[np.arange(lay.dim)[lay.err("rate")], np.arange(lay.dim)[lay.err("attitude")]]
+    eps = 1e-6
+    ks = np.flatnonzero(pseudo[1:]) + 1
+    x = hist.x[ks - 1]  # (m, nom) the estimate the step starts from
+    dX = np.zeros((len(ks), 7, lay.dim))
+    dX[:, 1:, idx] = eps * np.eye(6)
+    X = lay.boxplus(np.repeat(x[:, None, :], 7, axis=1), dX)
+    dts = (t[ks] - t[ks - 1])[:, None]
+    ok = np.all(np.isfinite(x), axis=1)
+    F = np.zeros((len(ks), 6, 6))
+    for dt in np.unique(dts):  # one batch per step length (one at a constant rate)
+        sel = (dts[:, 0] == dt) & ok
+        if not sel.any():
+            continue
+        w1, q1 = ukf_model.propagate_rotation(X[sel][..., nr], X[sel][..., na], X[sel][..., nk], dt)
+        X1 = X[sel].copy()
+        X1[..., nr] = w1
+        X1[..., na] = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
+        E = lay.boxminus(X1[:, 1:], X1[:, :1])[..., idx] / eps  # (m, perturbation j, error)
+        F[sel] = np.swapaxes(E, 1, 2)
+    out = np.zeros((len(t), 6, 6))
+    D = np.zeros((6, 6))
+    prev = -1
+    for j, k in enumerate(ks.tolist()):
+        if prev != k - 1:  # a real measurement in between: the GP's extrapolation restarts
+            D = np.zeros((6, 6))
+        prev = k
+        if ok[j]:
+            D = F[j] @ D @ F[j].T
+        D[:3, :3] += q_psd * float(t[k] - t[k - 1]) * np.eye(3)
+        out[k] = D
+    return out, idx
+
+
+def add_disturbance_drift(
+    hist: EstimateHistory, t: Array, z: Array, zp: Array, q_psd: float
+) -> None:
+    """:func:`drift_covariance` added to the covariance the history reports (in place)."""
+    r = drift_covariance(hist, t, z, zp, q_psd)
+    if r is not None and hist.P is not None:
+        D, idx = r
+        hist.P[:, idx[:, None], idx[None, :]] += D
+
+
+def drift_variance_of_pseudo(
+    hist: EstimateHistory, D: Array, rho0_C: Array, z: Array, zp: Array
+) -> Array:
+    """(n, N, 9) variance the drift ``D`` (:func:`drift_covariance`) gives each GP
+    pseudo-measurement component, 0 elsewhere: a turn ``dtheta`` of the target moves feature
+    ``i`` by ``dtheta x rho_i``, i.e. its projections by about ``|rho_i| / |rho_0|`` times one
+    axis of ``dtheta`` (``trace(D_att) / 3``), its flows by that times the rate's drift and
+    ``|omega| dtheta``. Added to the pseudo-measurements' R, it stops their common error from
+    being read as information on the rigid parameters (inertia, features), which it pulled to
+    5x their sigma (kabir2025 at 1e-12 rad^2/s^3: features NEES/dof 173 -> 0.2).
+    tumblenav addition."""
+    lay = hist.layout
+    n, N = z.shape[:2]
+    f = hist.x[:, lay.nom("features")].reshape(n, N, 3)
+    s2 = np.sum(f**2, axis=-1) / np.sum(np.asarray(rho0_C) ** 2, axis=-1)[:, None]  # (n, N)
+    var_att = np.trace(D[:, 3:, 3:], axis1=1, axis2=2) / 3.0
+    var_rate = np.trace(D[:, :3, :3], axis1=1, axis2=2) / 3.0
+    w2 = np.sum(hist.x[:, lay.nom("rate")] ** 2, axis=-1)
+    out = np.zeros(z.shape)
+    out[..., :5] = (s2 * var_att[:, None])[..., None]
+    out[..., 5:] = (s2 * (var_rate + w2 * var_att)[:, None])[..., None]
+    pseudo = np.isfinite(zp) & ~np.isfinite(z)
+    return np.where(pseudo & np.isfinite(out), out, 0.0)
 
 
 class KabirUKFGP:
@@ -245,7 +316,16 @@ class KabirUKFGP:
         prep = dataclasses.replace(prep, R_diag=Rp)
         hist = ukf_filter.run_ukf(scenario, t, zp, Rp, tun.variant, tun_r, geom, prepared=prep)
         q_psd = float(tun_r.q_omega_var or 0.0) / float(np.median(np.diff(t))) if len(t) > 1 else 0
-        add_disturbance_drift(hist, t, z, zp, q_psd)
+        drift = drift_covariance(hist, t, z, zp, q_psd)
+        if drift is not None and tun.gp_drift_in_r:
+            # second pass: the pseudo-measurements' R carries the drift of the first pass's
+            # trajectory (the linearisation point; the GP predictions are the same)
+            Rp = Rp + drift_variance_of_pseudo(hist, drift[0], geom.rho0_C, z, zp)
+            prep = dataclasses.replace(prep, R_diag=Rp)
+            hist = ukf_filter.run_ukf(scenario, t, zp, Rp, tun.variant, tun_r, geom, prepared=prep)
+            drift = drift_covariance(hist, t, z, zp, q_psd)
+        if drift is not None and hist.P is not None:
+            hist.P[:, drift[1][:, None], drift[1][None, :]] += drift[0]
         for line in prep.warnings:
             warnings.warn(line, stacklevel=2)
         hist.skipped["gp_fallback_features"] = len(fallback)
