@@ -19,6 +19,7 @@ from tumblenav.estimators import base as est_base
 from tumblenav.evaluation.metrics import RunErrors
 from tumblenav.scenario import builtin_text, load_scenario, scenario_to_yaml
 from tumblenav.simulation import run_streams, simulate
+from tumblenav.testing import KABIR_TORQUE_FREE
 
 
 def run(args, capsys) -> tuple[int, str, str]:
@@ -43,8 +44,10 @@ def short_hu(duration: float = 40.0):
 
 
 def short_kabir(duration: float = 60.0):
-    return load_scenario("kabir2025").with_updates(
-        duration_s=duration, **{"occlusion.loss_from_s": None}
+    return (
+        load_scenario("kabir2025")
+        .with_updates(**KABIR_TORQUE_FREE)
+        .with_updates(duration_s=duration, **{"occlusion.loss_from_s": None})
     )
 
 
@@ -52,7 +55,7 @@ def short_kabir(duration: float = 60.0):
 
 
 def _unrunnable(tmp_path: Path) -> list[tuple[Path, str, str]]:
-    kab = load_scenario("kabir2025")
+    kab = load_scenario("kabir2025").with_updates(**KABIR_TORQUE_FREE)
     return [
         (
             write(

@@ -13,6 +13,7 @@ from tumblenav.evaluation import alignment
 from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
+from tumblenav.testing import KABIR_TORQUE_FREE
 
 SC = "docs/results/scenarios/consistency/kabir_rate005.yaml"
 
@@ -46,12 +47,16 @@ def test_derived_sigma_o_close_to_the_papers_where_the_truncation_is_small():
     # at 0.175 Hz eq. 27's truncation dominates: 2.4e-3 rad/s RMS, 2.4x the paper's 1e-3
     out, stencil = {}, {}
     for f in (0.025, 0.175):
-        s = load_scenario("kabir2025").with_updates(
-            **{
-                "target.omega0_T_rad_s": list(2 * np.pi * f * np.array([2, 1, 2]) / 3),
-                # the paper's torque-free truth (no process-noise term in sigma_o)
-                "process_noise.rotational_rad2_s4": 0.0,
-            }
+        s = (
+            load_scenario("kabir2025")
+            .with_updates(**KABIR_TORQUE_FREE)
+            .with_updates(
+                **{
+                    "target.omega0_T_rad_s": list(2 * np.pi * f * np.array([2, 1, 2]) / 3),
+                    # the paper's torque-free truth (no process-noise term in sigma_o)
+                    "process_noise.rotational_rad2_s4": 0.0,
+                }
+            )
         )
         s = s.with_updates(
             **{

@@ -161,7 +161,7 @@ def _kabir_summary() -> dict:
                     "estimator": est,
                     "occluded": occluded,
                     "label": label,
-                    **({"gp_variance": extra["gp_variance"]} if extra else {}),
+                    **({"gp_variance": extra["gp_variance"]} if "gp_variance" in extra else {}),
                     "runs": 20,
                     "runs_failed": 0,
                     "window_s": [1500.0, 3000.0],

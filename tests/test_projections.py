@@ -96,8 +96,13 @@ def test_kabir_h_matches_projections_and_flow_with_a_moving_mass_centre():
 def test_normalised_orders_kabir_R_then_L_and_matches_the_sensor():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
+    from tumblenav.testing import KABIR_TORQUE_FREE
 
-    s = load_scenario("kabir2025").with_updates(duration_s=5.0, **{"sensor.noise.angular_rad": 0.0})
+    s = (
+        load_scenario("kabir2025")
+        .with_updates(**KABIR_TORQUE_FREE)
+        .with_updates(duration_s=5.0, **{"sensor.noise.angular_rad": 0.0})
+    )
     truth, meas = simulate(s, 7)
     w, obs = proj.normalised(meas)
     assert w.shape == (len(meas.t), 5, 4) and obs.all()

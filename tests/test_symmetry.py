@@ -19,6 +19,7 @@ from tumblenav.estimators.base import Block, EstimateHistory, StateLayout
 from tumblenav.estimators.kabir2025.model import layout as kabir_layout
 from tumblenav.evaluation import alignment, evaluate_run, metrics
 from tumblenav.scenario import load_scenario
+from tumblenav.testing import KABIR_TORQUE_FREE
 
 N_FEAT = 4
 PERMS = alignment.signed_permutations()
@@ -223,8 +224,10 @@ def test_every_signed_permutation_is_aligned(i, seed):
 
 
 def test_campaign_summary_counts_branches_and_warns(tmp_path):
-    scenario = load_scenario("kabir2025").with_updates(
-        duration_s=99.0, steady_state_window_s=[50.0, 99.0]
+    scenario = (
+        load_scenario("kabir2025")
+        .with_updates(**KABIR_TORQUE_FREE)
+        .with_updates(duration_s=99.0, steady_state_window_s=[50.0, 99.0])
     )
     store = CampaignStore(tmp_path)
     store.runs_dir.mkdir(parents=True)

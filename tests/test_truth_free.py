@@ -13,6 +13,7 @@ from tumblenav.estimators.context import EstimatorContext, context_from_scenario
 from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
+from tumblenav.testing import KABIR_TORQUE_FREE
 
 OTHER_TRUTH = {
     "target.inertia_kg_m2": [55.0, 70.0, 31.0],
@@ -33,8 +34,12 @@ def _scenarios():
         occlusion={"windows": [{"start_s": 20.0, "end_s": 25.0}]},
     )
     yu = load_scenario("yu2019").with_updates(duration_s=12.0, steady_state_window_s=[6.0, 12.0])
-    kab = load_scenario("kabir2025").with_updates(
-        duration_s=80.0, steady_state_window_s=[60.0, 80.0], **{"occlusion.loss_from_s": 50.0}
+    kab = (
+        load_scenario("kabir2025")
+        .with_updates(**KABIR_TORQUE_FREE)
+        .with_updates(
+            duration_s=80.0, steady_state_window_s=[60.0, 80.0], **{"occlusion.loss_from_s": 50.0}
+        )
     )
     kab = K.with_paper_assumptions(kab)  # the recipe's truth-based start, as explicit settings
     chang = load_scenario("chang2021_close").with_updates(

@@ -22,7 +22,7 @@ from tumblenav.evaluation import alignment, metrics
 from tumblenav.papers import kabir2025 as K
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
-from tumblenav.testing import numerical_jacobian
+from tumblenav.testing import KABIR_TORQUE_FREE, numerical_jacobian
 
 quat = (
     arrays(np.float64, 4, elements=st.floats(-1.0, 1.0))
@@ -44,13 +44,17 @@ def kabir(f_T=0.075, duration=400.0, occlusion=None, **tuning):
         for k in ("rate_factor", "q_offset_wxyz", "feature_offset_m")
         if k in tuning
     }
-    s = load_scenario("kabir2025").with_updates(
-        duration_s=duration,
-        **{
-            "target.omega0_T_rad_s": list(2 * np.pi * f_T * U3),
-            "occlusion.loss_from_s": occlusion,
-            "estimator.tuning": {**U.paper_tuning(f_T), **tuning},
-        },
+    s = (
+        load_scenario("kabir2025")
+        .with_updates(**KABIR_TORQUE_FREE)
+        .with_updates(
+            duration_s=duration,
+            **{
+                "target.omega0_T_rad_s": list(2 * np.pi * f_T * U3),
+                "occlusion.loss_from_s": occlusion,
+                "estimator.tuning": {**U.paper_tuning(f_T), **tuning},
+            },
+        )
     )
     if tuning.get("init") == "triangulated":
         return s.with_updates(

@@ -90,7 +90,19 @@ def start(
     """The run's start (see the module docstring and ``init`` in :class:`KabirTuning`)."""
     N = z.shape[1]
     if tun.init == "identified":
-        return _identified_start(t, z, geom, tun, sigma_p)
+        try:
+            return _identified_start(t, z, geom, tun, sigma_p)
+        except InputError as exc:
+            # too short a run, or a pure spin: no inertia to identify. The filter still runs,
+            # from the triangulated start that admits it knows no frame, and says so
+            fallback = start(
+                scenario, t, z, geom, tun.model_copy(update={"init": "triangulated"}), sigma_p
+            )
+            fallback.info["warning"] = (
+                f"{str(exc).removeprefix('estimator.tuning.init: ')}: started as 'triangulated' "
+                "instead (the attitude unknown, 1-sigma init_attitude_sigma_rad)"
+            )
+            return fallback
     x = np.zeros(9 + 3 * N)
     if tun.init == "given":
         x[0:3] = tun.init_omega_rad_s
