@@ -659,9 +659,64 @@ def test_compiled_rotation_discretisation_equals_numpy(w, a, dt, sigma_r2):
     p = ratios_of(a)
     F = hu.core_F(w, p, 0.0, rotation_only=True)
     Phi, Qk = discretise(F, hu.core_Qc(p, sigma_r2, 0.0)[:9, :9], dt)
-    Phi_c, Qk_c = _hu_kernel._rotation_discrete(w, p, sigma_r2, dt, np.empty((9, 9, 9)))
+    Phi_c, Qk_c = _hu_kernel._rotation_discrete(
+        w, p, sigma_r2, dt, np.empty((9, 9, 9)), np.zeros((3, 3))
+    )
     assert np.allclose(Phi_c, Phi, rtol=1e-12, atol=1e-15)
     assert np.allclose(Qk_c, Qk, rtol=1e-10, atol=1e-20)
+
+
+@given(seed=seeds, a=second_moments, dt=st.floats(0.01, 0.5), sigma_r2=st.floats(0.0, 1e-6))
+def test_frame_error_rate_noise_compiled_equals_numpy(seed, a, dt, sigma_r2):
+    """The frame error's share of the rate noise (``frame_error_Qc``) and the discretisation
+    with a full rate block of Qc: the compiled kernel as numpy's."""
+    from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+    from tumblenav.estimators.hu2024.model import frame_error_Qc
+
+    rng = np.random.default_rng(seed)
+    w, p = rng.normal(size=3) * 0.1, ratios_of(a)
+    L = rng.normal(size=(3, 3)) * 0.02
+    C = L @ L.T
+    Qf = frame_error_Qc(w, p, C, 60.0)
+    Qf_c = np.empty((3, 3))
+    _hu_kernel._frame_error_qc(w, p, C, 60.0, Qf_c)
+    np.testing.assert_allclose(Qf_c, Qf, rtol=1e-10, atol=1e-30)
+    assert np.all(np.linalg.eigvalsh(Qf) > -1e-20)
+    Qc = hu.core_Qc(p, sigma_r2, 0.0)[:9, :9]
+    Qc[3:6, 3:6] += Qf
+    Phi, Qk = discretise(hu.core_F(w, p, 0.0, rotation_only=True), Qc, dt)
+    Phi_c, Qk_c = _hu_kernel._rotation_discrete(w, p, sigma_r2, dt, np.empty((9, 9, 9)), Qf)
+    assert np.allclose(Phi_c, Phi, rtol=1e-12, atol=1e-15)
+    assert np.allclose(Qk_c, Qk, rtol=1e-10, atol=1e-22)
+
+
+@given(seed=seeds, a=second_moments)
+def test_frame_error_rate_jacobian_against_finite_differences(seed, a):
+    """``frame_error_rate_jacobian`` is d(omega')/du of the Euler equations with the true
+    inertia expressed in a frame turned by u (``R I R^T``, ``R = exp([u x])``, the
+    convention of ``frame_jacobian``), at u = 0; and the polhode time caps ``tau``."""
+    from tumblenav.estimators.hu2024.model import frame_error_Qc, frame_error_rate_jacobian
+
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=3) * 0.1
+    p = ratios_of(a)
+
+    def wdot(u):
+        R = rot.exp_map(u)
+        Iu = R @ np.diag(moments_of(a)) @ R.T
+        return np.linalg.solve(Iu, np.cross(Iu @ w, w))
+
+    np.testing.assert_allclose(wdot(np.zeros(3)), hu.euler_ratios_rhs(w, p), atol=1e-15)
+    G = frame_error_rate_jacobian(w, p)
+    eps = 1e-6
+    Gn = np.stack([(wdot(eps * e) - wdot(-eps * e)) / (2 * eps) for e in np.eye(3)], 1)
+    np.testing.assert_allclose(G, Gn, atol=1e-9 * max(1.0, np.abs(Gn).max()))
+    k = np.linalg.norm(hu.euler_ratios_rhs(w, p))
+    tau = np.linalg.norm(w) / k if k * 60.0 > np.linalg.norm(w) else 60.0
+    C = np.diag([1e-4, 4e-4, 9e-4])
+    np.testing.assert_allclose(
+        frame_error_Qc(w, p, C, 60.0), tau * G @ C @ G.T, rtol=1e-10, atol=1e-30
+    )
 
 
 def _random_state(rng: np.random.Generator, n_feat: int) -> tuple:
@@ -796,6 +851,40 @@ def test_frame_consider_cov_is_the_second_moment_of_the_turned_state():
     Rs = rot.exp_map(Us)
     mean_ut = np.mean(f @ np.swapaxes(Rs, -1, -2) - f, axis=0)
     np.testing.assert_allclose(mean_ut, D[:, 15:].mean(0).reshape(3, 3), atol=2e-3)
+
+
+def test_frame_consider_cov_holds_the_quadratic_part_of_the_turn():
+    """Beyond the linear part ``Ju u``, the turn's quadratic part ``[u x]^2 f / 2`` (a shape
+    change in first order terms: hu_occ30's features) has the second moment that sampling
+    gives, cross terms ``u_a u_b`` included (27 Gauss-Hermite nodes): compared on the
+    complement of Ju's columns, at a 3-degree frame error. The six points ``+- sqrt(3) L e_i``
+    used before miss most of it (issue 18)."""
+    rng = np.random.default_rng(11)
+    lay, x = _random_state(rng, 4)
+    P = np.zeros((1, lay.dim, lay.dim))
+    C = np.radians(3.0) ** 2 * np.diag([1.0, 0.6, 0.8])
+    Ju = hu.frame_jacobian(x, lay)[0]
+    Pi = np.eye(lay.dim) - Ju @ np.linalg.pinv(Ju)  # the part no first-order turn explains
+    u = rng.multivariate_normal(np.zeros(3), C, size=200_000)
+    R = rot.exp_map(u)
+    D = np.zeros((len(u), lay.dim))
+    D[:, :3] = u
+    D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
+    f = x[0, 16:].reshape(4, 3)
+    D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(len(u), -1)
+    sampled = Pi @ (D.T @ D / len(u)) @ Pi
+    ut = Pi @ hu.frame_consider_cov(x, P, C[None], lay)[0] @ Pi
+    scale = np.abs(sampled).max()
+    np.testing.assert_allclose(ut, sampled, atol=0.03 * scale)
+    L = hu._chol3(C[None])[0]  # the old six points
+    Us = np.sqrt(3.0) * np.concatenate([L.T, -L.T])
+    Rs = rot.exp_map(Us)
+    D6 = np.zeros((6, lay.dim))
+    D6[:, :3] = Us
+    D6[:, 15:] = (f @ np.swapaxes(Rs, -1, -2) - f).reshape(6, -1)
+    D6[:, 3:6] = (Rs @ x[0, 4:7]) - x[0, 4:7]
+    six = Pi @ (D6.T @ D6 / 6) @ Pi
+    assert np.abs(six - sampled).max() > 0.2 * scale
 
 
 def test_branch_mixture_cov_covers_the_half_turns():

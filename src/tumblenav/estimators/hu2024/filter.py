@@ -36,6 +36,7 @@ from tumblenav.estimators.hu2024.model import (
     constrain_inertia,
     core_F,
     core_Qc,
+    frame_error_Qc,
     layout,
     propagate_rotation,
     recentre_unseen,
@@ -171,6 +172,7 @@ def run_filter(
                 r["P"], r["nis"], r["nis_dof"], r["diverged"], r["flips"], consider,
                 sel(fe.R_GT), np.nan_to_num(sel(fe.cov_frame)), sel(p_turn), sel(mu_turn),
                 sel(S_turn), refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
+                float(tun.frame_error_dynamics_s),
             )  # fmt: skip
             return r
         # the reference engine: each run folded through Hu's steps (base.fold)
@@ -322,7 +324,11 @@ class HuSteps:
         dt = t - belief.t
         x, P = belief.x[None].copy(), belief.P[None].copy()
         F = core_F(x[:, sw], x[:, sp], self.n_orbit, rotation_only=True)
-        Phr, Qr = discretise(F, core_Qc(x[:, sp], self.s_r2, self.s_t2)[:, :9, :9], dt)
+        Qc = core_Qc(x[:, sp], self.s_r2, self.s_t2)[:, :9, :9]
+        if self.consider and tun.frame_error_dynamics_s > 0:  # the frame error's share
+            C = self.fe.cov_frame[:, belief.memo.k_used]
+            Qc[:, 3:6, 3:6] += frame_error_Qc(x[:, sw], x[:, sp], C, tun.frame_error_dynamics_s)
+        Phr, Qr = discretise(F, Qc, dt)
         Pht, Qt = _translation_discrete(self.n_orbit, self.s_t2, dt)
         q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
         x[:, sq], x[:, sw] = q_new, w_new

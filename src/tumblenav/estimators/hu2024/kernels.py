@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from tumblenav.dynamics.compiled import rk4_attitude
+from tumblenav.estimators.hu2024.frame import TURN_NODES, TURN_WEIGHTS
 from tumblenav.estimators.hu2024.model import layout
 from tumblenav.rotations_compiled import (
     boxminus,
@@ -110,8 +111,45 @@ def _rk4(x, dt):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _rotation_discrete(w, p, s_r2, dt, ws):
-    """``ekf_dpacf.discretise(core_F(.., rotation_only=True), core_Qc[:9, :9], dt)``:
+def _frame_error_qc(w, p, C, tau_max, out):
+    """``model.frame_error_Qc`` of one run into ``out`` (3, 3): ``G C G^T tau`` with
+    ``G = M(omega, p) [omega x] - [K(omega) x]``, ``tau = min(|omega| / |K|, tau_max)``."""
+    wx, wy, wz = w[0], w[1], w[2]
+    K0, K1, K2 = p[0] * wy * wz, p[1] * wx * wz, p[2] * wx * wy
+    M = np.zeros((3, 3))
+    M[0, 1], M[0, 2] = p[0] * wz, p[0] * wy
+    M[1, 0], M[1, 2] = p[1] * wz, p[1] * wx
+    M[2, 0], M[2, 1] = p[2] * wy, p[2] * wx
+    Sw = np.zeros((3, 3))
+    Sw[0, 1], Sw[0, 2], Sw[1, 0], Sw[1, 2], Sw[2, 0], Sw[2, 1] = -wz, wy, wz, -wx, -wy, wx
+    G = _mm(M, Sw)
+    G[0, 1] += K2  # - [K x]
+    G[0, 2] -= K1
+    G[1, 0] -= K2
+    G[1, 2] += K0
+    G[2, 0] += K1
+    G[2, 1] -= K0
+    k = math.sqrt(K0 * K0 + K1 * K1 + K2 * K2)
+    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+    tau = wn / k if k * tau_max > wn else tau_max
+    GC = _mm(G, C)
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for m in range(3):
+                s += GC[i, m] * G[j, m]
+            out[i, j] = s * tau
+    for i in range(3):
+        for j in range(i + 1, 3):
+            v = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = v
+            out[j, i] = v
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _rotation_discrete(w, p, s_r2, dt, ws, Qf):
+    """``ekf_dpacf.discretise(core_F(.., rotation_only=True), core_Qc[:9, :9], dt)``, with
+    ``Qf`` (3, 3) added to the rate block of Qc (the frame error's share, ``_frame_error_qc``):
     Phi (eq. 38, 4th-order series) and Q_k (eq. 39, Van Loan to dt^3) of the 9-state block,
     written into the workspace ``ws`` (9, 9, 9): F, F^2, F^3, F^4, F Qc, F^2 Qc, F Qc F^T, then
     returned as views ``Phi = ws[7]``, ``Q_k = ws[8]``."""
@@ -154,11 +192,15 @@ def _rotation_discrete(w, p, s_r2, dt, ws):
             )
     j1 = (1 - py) / (1 + px)  # J(p) of eq. 22 (noise_gain)
     j2 = (1 + pz) / (1 - px)
-    q3, q4, q5 = s_r2, s_r2 * j1 * j1, s_r2 * j2 * j2  # Qc = diag(0,0,0,q3,q4,q5,0,0,0)
-    for i in range(9):  # F Qc: columns 3..5 of F scaled
+    Qc3 = Qf.copy()  # Qc's rate block: diag(q3, q4, q5) + Qf, zero elsewhere
+    Qc3[0, 0] += s_r2
+    Qc3[1, 1] += s_r2 * j1 * j1
+    Qc3[2, 2] += s_r2 * j2 * j2
+    for i in range(9):  # F Qc: columns 3..5 from F's columns 3..5 times Qc3
         for j in range(9):
             FQ[i, j] = 0.0
-        FQ[i, 3], FQ[i, 4], FQ[i, 5] = F[i, 3] * q3, F[i, 4] * q4, F[i, 5] * q5
+        for j in range(3):
+            FQ[i, 3 + j] = F[i, 3] * Qc3[0, j] + F[i, 4] * Qc3[1, j] + F[i, 5] * Qc3[2, j]
     _mm_into(F, FQ, F2Q)
     for i in range(9):  # T = F Qc F^T
         for j in range(9):
@@ -166,8 +208,8 @@ def _rotation_discrete(w, p, s_r2, dt, ws):
     for i in range(9):
         for j in range(i, 9):
             qc = 0.0
-            if i == j and 3 <= i <= 5:
-                qc = (q3, q4, q5)[i - 3]
+            if 3 <= i <= 5 and 3 <= j <= 5:
+                qc = Qc3[i - 3, j - 3]
             v = (
                 qc * dt
                 + (FQ[i, j] + FQ[j, i]) * dt2 / 2
@@ -498,22 +540,23 @@ def _chol3(C, L):
 
 
 P_TURN_MIN = 1e-9  # = ekf_dpacf.P_TURN_MIN (tested)
+_TURN_Z, _TURN_W = TURN_NODES.copy(), TURN_WEIGHTS.copy()  # frame._turn_moments' rule
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _turn_points(x, mu, S, N, D):
-    """``ekf_dpacf._turn_moments``' sigma points for one run: ``D[s]`` (6, 2 + N, 3) =
-    ``[u; R(u) w - w; R(u) f_i - f_i]`` at ``u = mu +- sqrt(3) L e_i`` (``S = L L^T``)."""
+    """``ekf_dpacf._turn_moments``' nodes for one run: ``D[s]`` (27, 2 + N, 3) =
+    ``[u; R(u) w - w; R(u) f_i - f_i]`` at ``u = mu + L z_s`` (``S = L L^T``, ``z_s`` the
+    Gauss-Hermite nodes ``frame.TURN_NODES``, weights ``_TURN_W``)."""
     L = np.empty((3, 3))
     _chol3(S, L)
     u = np.empty(3)
     qu = np.empty(4)
     Ru = np.empty((3, 3))
-    r3 = math.sqrt(3.0)
-    for sp in range(6):
-        sg = r3 if sp < 3 else -r3
+    for sp in range(_TURN_Z.shape[0]):
         for a in range(3):
-            u[a] = mu[a] + sg * L[a, sp % 3]
+            u[a] = mu[a] + L[a, 0] * _TURN_Z[sp, 0] + L[a, 1] * _TURN_Z[sp, 1]
+            u[a] += L[a, 2] * _TURN_Z[sp, 2]
         exp_quat(u, qu)
         quat_to_matrix(qu, Ru)
         for a in range(3):
@@ -529,7 +572,7 @@ def _turn_points(x, mu, S, N, D):
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
     """``ekf_dpacf.frame_consider_cov`` for one run: out = Pc = P plus the second moment,
-    over the six sigma points of the frame error ``u ~ N(0, C)``, of ``D(u) = [u; R(u) w - w;
+    over the 27 Gauss-Hermite nodes of the frame error ``u ~ N(0, C)``, of ``D(u) = [u; R(u) w - w;
     0; 0; 0; R(u) f_i - f_i]``; then the half turns' mixture ``ekf_dpacf.branch_mixture_cov``
     (probabilities ``p_turn``, the frame error given each turn ``N(mu_turn[t], S_turn[t])``)."""
     out[:, :] = P
@@ -539,13 +582,14 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
     offs[0] = _SA
     for blk in range(1, nb):
         offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
-    D = np.zeros((6, nb, 3))
+    ns = _TURN_Z.shape[0]
+    D = np.zeros((ns, nb, 3))
     _turn_points(x, np.zeros(3), C, N, D)
-    for sp in range(6):
+    for sp in range(ns):
         for bi in range(nb):
             oi = offs[bi]
             for a in range(3):
-                da = D[sp, bi, a] / 6.0
+                da = D[sp, bi, a] * _TURN_W[sp]
                 for bj in range(nb):
                     oj = offs[bj]
                     for c in range(3):
@@ -577,11 +621,11 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
         for i in range(d):
             for j in range(d):
                 m2[i, j] = 0.0
-        for sp in range(6):
+        for sp in range(ns):
             for bi in range(nb):
                 oi = offs[bi]
                 for a in range(3):
-                    da = D[sp, bi, a] / 6.0
+                    da = D[sp, bi, a] * _TURN_W[sp]
                     m1[oi + a] += da
                     for bj in range(nb):
                         oj = offs[bj]
@@ -654,6 +698,7 @@ def run_filter_kernel(
     att_update,
     iter_var,
     iter_max,
+    frame_tau,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied); ``out_x``
@@ -668,7 +713,9 @@ def run_filter_kernel(
     refined start, ``ekf_dpacf.refine_start_pose``, has used it). ``att_update``: update with
     the attitude measurement (else it only votes on the half turns). ``iter_var``: where the
     prior attitude's variance (trace) exceeds it, the update is iterated ``iter_max`` more
-    times (relinearised at the last posterior; 0: never)."""
+    times (relinearised at the last posterior; 0: never). ``frame_tau``: with ``consider``,
+    the frame error's share of the rate noise (``model.frame_error_Qc``) with this largest
+    correlation time (s; 0: none)."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
     for b in range(B):
@@ -678,6 +725,7 @@ def run_filter_kernel(
         votes = 0
         f_first = np.full((N, 3), np.nan)
         ws = np.empty((9, 9, 9))  # workspace of _rotation_discrete
+        Qf = np.zeros((3, 3))  # the frame error's share of the rate noise (_frame_error_qc)
         R_used = np.eye(3)  # 'consider': the frame the state is in, and its covariance
         C_used = np.zeros((3, 3))
         k_used = 0
@@ -685,7 +733,9 @@ def run_filter_kernel(
         for k in range(n):
             if k > 0 and active:
                 dt = t[k] - t[k - 1]
-                Phr, Qr = _rotation_discrete(x[_NW : _NW + 3], x[_NP : _NP + 3], s_r2, dt, ws)
+                if consider and frame_tau > 0.0:  # the frame error's share of the rate noise
+                    _frame_error_qc(x[_NW : _NW + 3], x[_NP : _NP + 3], C_used, frame_tau, Qf)
+                Phr, Qr = _rotation_discrete(x[_NW : _NW + 3], x[_NP : _NP + 3], s_r2, dt, ws, Qf)
                 _rk4(x, dt)
                 rv = x[_NR : _NR + 6].copy()
                 for i in range(6):

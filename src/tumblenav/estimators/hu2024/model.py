@@ -90,6 +90,43 @@ def core_Qc(p: Array, sigma_r2: float, sigma_t2: float) -> Array:
     return Q
 
 
+def frame_error_rate_jacobian(w: Array, p: Array) -> Array:
+    """``G = d(omega') / d u`` (…,3,3): how a small rotation ``u`` between the frame the
+    filter's state is in (the DPACF frame T') and the true principal frame T changes the
+    angular acceleration that the Euler equations give in T' (beyond the paper).
+
+    ``u`` as in :func:`tumblenav.estimators.hu2024.frame.frame_jacobian` (coordinates in T'
+    are ``R`` times those in T, ``R = exp([u x])``): in T' the true inertia is ``R I R^T``,
+    not diagonal, and ``omega' = R K(R^T omega, p)`` (``K`` Hu 2024 eq. 21, the truth's
+    ratios) rather than the filter's ``K(omega, p)``. To first order in u (``R = I + [u x]``):
+    ``omega' = K(omega) + [u x] K(omega) - M(omega, p) [u x] omega``, i.e.
+    ``G = M(omega, p) [omega x] - [K(omega) x]`` with ``M = dK/domega`` (eq. 30)."""
+    M = core_F(w, p, 0.0, rotation_only=True)[..., 3:6, 3:6]
+    return M @ rot.skew(w) - rot.skew(euler_ratios_rhs(w, p))
+
+
+def frame_error_Qc(w: Array, p: Array, cov_frame: Array, tau_max_s: float) -> Array:
+    """Rate-block spectral density (…,3,3, rad^2/s^3) that stands for the DPACF frame's
+    error in the rate dynamics (beyond the paper; 'consider' frame model).
+
+    The frame error ``u ~ N(0, cov_frame)`` is constant over the time the front end holds a
+    frame and changes only slowly when it re-solves it, so it adds ``G(t) u``
+    (:func:`frame_error_rate_jacobian`) to the angular acceleration. ``G`` turns with the
+    rate in the body (the polhode): over a window much longer than the polhode's time
+    ``tau = |omega| / |K(omega)|`` (the time Euler's terms take to change the rate by its own
+    size) the signal averages out, over a shorter one it acts as a bias. As white noise it
+    is given the density that makes the rate's error variance right at ``tau``: a bias
+    ``G u`` gives ``G cov_frame G^T tau^2`` over ``tau``, white noise ``S tau``, so
+    ``S = G cov_frame G^T tau``, with ``tau <= tau_max_s`` (a spin near a principal axis,
+    where ``K`` vanishes: the bias persists, and the window is the filter's memory)."""
+    G = frame_error_rate_jacobian(w, p)
+    k = np.linalg.norm(euler_ratios_rhs(w, p), axis=-1)
+    wn = np.linalg.norm(w, axis=-1)
+    tau = np.where(k * tau_max_s > wn, wn / np.maximum(k, 1e-300), tau_max_s)
+    S = G @ np.nan_to_num(cov_frame) @ np.swapaxes(G, -1, -2)
+    return tau[..., None, None] * 0.5 * (S + np.swapaxes(S, -1, -2))
+
+
 def _translation_discrete(n_orbit: float, sigma_t2: float, dt: float) -> tuple[Array, Array]:
     """Phi and Q_k of the translational block (Hu 2024 eq. 4-5, 38-39): constant for a given
     dt (:func:`tumblenav.dynamics.relative_orbit.cw_discrete`)."""

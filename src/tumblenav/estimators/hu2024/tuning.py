@@ -172,6 +172,16 @@ class HuTuning(BaseModel):
         "enough for this long (a motion that leaves the ratios poorly determined must not "
         "keep the filter from starting)",
     )
+    frame_error_dynamics_s: float = Field(
+        60.0,
+        ge=0,
+        description="with dpacf_frame_error 'consider': the DPACF frame's error also enters "
+        "the rate dynamics, as process noise G cov_frame G^T tau (G = d(Euler)/d(frame), "
+        "model.frame_error_Qc; tau the polhode's time |omega| / |K(omega)|, at most this "
+        "many seconds; beyond the paper): in a frame up to max_dpacf_sigma_rad off the "
+        "diagonal inertia model is wrong by G u, which the filter otherwise fits with its "
+        "ratios, growing over-confident (issue 18, hu_occ30). 0: off",
+    )
 
     frontend: StereoPointsTuning = Field(
         default_factory=StereoPointsTuning,
