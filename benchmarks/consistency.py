@@ -8,6 +8,8 @@ written to OUT/table.md, OUT/table.json).
 
     python benchmarks/consistency.py -o out/consistency [--workers 2] [--only NAME,...]
     python benchmarks/consistency.py -o out/consistency --table-only   # the table of what ran
+    python benchmarks/consistency.py -o docs/results/consistency --table-only   # from the stored
+                                                                  # summaries (NAME.json)
 
 Last line: ``consistency cases=<n> nees_inside=<k> nis_inside=<m>``.
 """
@@ -119,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
                 plots=False,
             )
         f = out / "summary.json"
+        if not f.exists():  # a folder of stored summaries, NAME.json (docs/results/consistency)
+            f = a.output / f"{case['name']}.json"
         if f.exists():
             rows.append(_row(case, json.loads(f.read_text())))
     text = table(rows)

@@ -137,6 +137,9 @@ def test_same_runs_and_summary_as_the_local_runner(cluster, log, tmp_path):
         ):
             assert a.files == b.files
             for name in a.files:
+                if a[name].dtype.kind in "USO":  # text (the branch, warnings): the same
+                    assert np.array_equal(a[name], b[name]), f"run {k} {name}"
+                    continue
                 # float32 arrays (per-axis errors) round a 1e-12 difference up to one ulp
                 rtol = 1e-6 if a[name].dtype == np.float32 else 1e-7
                 np.testing.assert_allclose(
