@@ -137,4 +137,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tumblenav.errors import Interrupted
+
+    try:
+        sys.exit(main())
+    except (Interrupted, KeyboardInterrupt) as exc:  # Ctrl-C: say what was kept, as the CLI does
+        kept = getattr(exc, "kept", None)
+        print(f"interrupted: {kept or 'rerun the same command to resume'}")
+        sys.exit(128 + getattr(exc, "signum", 2))
