@@ -163,6 +163,84 @@ def test_inner_nll_is_the_same_likelihood_in_b_and_sigma(small_problem):
     np.testing.assert_allclose(gi, num, rtol=1e-5)  # observed <= 2e-7
 
 
+# --- the compiled loops: numpy's arithmetic to the last bit -----------------------------------
+# L-BFGS-B's path is chaotic in the last bits of the gradient (a reordered sum moved a kabir2025
+# feature's model to another optimum), so gp/compiled.py must reproduce the numpy it replaced
+# exactly: these compare with that numpy, bit for bit (np.array_equal, not a tolerance).
+
+
+def test_compiled_lattice_and_gram_are_numpys_bit_for_bit(small_problem):
+    from importlib import import_module
+
+    kernel_mod = import_module("tumblenav.estimators.kabir2025.gp.kernel")
+    compiled = import_module("tumblenav.estimators.kabir2025.gp.compiled")
+    t, Y, theta, feat = small_problem
+    th = gp._Theta.unpack(theta, Y.shape[1])
+    M1, M2 = feat.M1, feat.M2
+    Z1, Z2 = kernel_mod._phases(t, th.periods, (2 * M1, 2 * M2))
+    base = [np.exp(2j * np.pi * t / P) for P in th.periods]
+    zp, Z2c = compiled.lattice_phases(
+        compiled.phase_powers(base[0], 2 * M1), compiled.phase_powers(base[1], 2 * M2)
+    )
+    assert np.array_equal(zp, Z1[:, 2 * M1 :]) and np.array_equal(Z2c, Z2)
+    z1 = Z1[:, 2 * M1 : 3 * M1 + 1]
+    zy = (z1[:, :, None] * Y[:, None, :]).reshape(len(t), -1)
+    assert np.array_equal(compiled.weighted_phases(zp[:, : M1 + 1], Y), zy)
+    # the Gram matrix and T as numpy gathered them
+    lat = gp._lattice(t, Y, th.periods, feat)
+    idx_d, idx_s = feat.lattice_index
+    K = len(feat.n)
+    W = np.stack([lat.W0.ravel(), lat.W1.ravel()])
+    Wd, Ws = W[:, idx_d], W[:, idx_s]
+    cc, ss = 0.5 * (Wd.real + Ws.real), 0.5 * (Wd.real - Ws.real)
+    cs, sc = 0.5 * (Ws.imag - Wd.imag), 0.5 * (Ws.imag + Wd.imag)
+    G = np.block([[cc[0], cs[0, :, 1:]], [sc[0, 1:, :], ss[0, 1:, 1:]]])
+    T = np.block([[cs[1], -cc[1, :, 1:]], [ss[1, 1:, :], -sc[1, 1:, 1:]]])
+    G2, T2, _ = gp._gram(lat, feat, th.periods)
+    assert G2.shape == (2 * K - 1,) * 2
+    assert np.array_equal(G2, G) and np.array_equal(T2, T)
+
+
+def test_compiled_factor_and_trace_weights_are_numpys_bit_for_bit(small_problem):
+    from importlib import import_module
+
+    from tumblenav.estimators.kabir2025.gp.likelihood import _factor
+
+    compiled = import_module("tumblenav.estimators.kabir2025.gp.compiled")
+    t, Y, theta, feat = small_problem
+    pre = gp._prepare(t, Y, gp._Theta.unpack(theta, Y.shape[1]), feat)
+    u = np.sqrt(pre.s)
+    H = u[:, None] * pre.G * u[None, :]
+    for dj in (1e-3, 1.0, 1e6):
+        M = H * dj
+        M[np.diag_indices_from(M)] += 1.0
+        c = _factor(pre.G, u, dj)
+        assert np.array_equal(c, linalg.cholesky(M, lower=True, check_finite=False))
+        Minv = linalg.lapack.dpotri(c, lower=1)[0]
+        Yt = u[:, None] * pre.T * u[None, :]
+        dm = np.diag(Minv)
+        w = np.einsum("ab,ab->b", Minv, Yt) + np.einsum(
+            "ab,ab->a", Minv, np.ascontiguousarray(Yt.T)
+        )
+        w = w - dm * np.diagonal(Yt)
+        TT = np.ascontiguousarray(pre.T.T)
+        assert np.array_equal(compiled.trace_weights(Minv, pre.T, TT, u, dm), w)
+
+
+def test_the_remembering_objective_returns_nll_and_grads_values(small_problem):
+    # _Objective (the fit's evaluations): nll_and_grad's numbers, also when it reuses the
+    # lattice (same periods), the prior weights (same lengthscales) or a whole evaluation
+    t, Y, theta, feat = small_problem
+    obj = gp._Objective(t, Y)
+    for k in (None, 2, 4, 9, None):
+        th = theta.copy()
+        if k is not None:
+            th[k] += 1e-3
+        f, g = obj(th, feat)
+        f0, g0 = gp.nll_and_grad(th, t, Y, feat)
+        assert f == f0 and np.array_equal(g, g0)
+
+
 def test_theta_pack_unpack_round_trip():
     L = np.array([[2.0, 0.0], [-0.3, 0.5]])
     theta = gp._Theta.pack([50.0, 8.0], [0.7, 1.9], L, 0.02)

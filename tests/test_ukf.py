@@ -102,6 +102,51 @@ def test_rk4_propagation_follows_the_torque_free_truth():
     assert rot.quat_angle(rot.quat_multiply(q, rot.quat_conjugate(q_true[-1]))) < 1e-6
 
 
+def sigma_like_states(seed: int, n: int = 49, spread: float = 1.0) -> np.ndarray:
+    """(2, n, 24) states around Kabir's 0.075 Hz tumble (five features), non-unit quaternions
+    as the additive UKF's sigma points have; ``spread`` scales the rate's scatter (large:
+    several RK4 substeps)."""
+    rng = np.random.default_rng(seed)
+    x = np.empty((2, n, 24))
+    x[..., 0:3] = 2 * np.pi * 0.075 * U3 * (1 + spread * 0.3 * rng.normal(size=(2, n, 3)))
+    x[..., 3:7] = rot.exp_quat([0.3, -0.2, 0.1]) + 0.05 * rng.normal(size=(2, n, 4))
+    x[..., 7:9] = [np.log(0.9), np.log(1.12)] + 0.1 * rng.normal(size=(2, n, 2))
+    x[..., 9:] = rng.uniform(-1.5, 1.5, size=(2, n, 15))
+    return x
+
+
+@pytest.mark.parametrize("seed, spread, dt", [(0, 1.0, 1.0), (1, 30.0, 1.0), (2, 1.0, -0.5)])
+def test_compiled_propagation_equals_the_numpy_reference(seed, spread, dt):
+    # the filter's sigma points go through the compiled loop (kabir2025/kernels.py): the same
+    # substeps and RK4 as propagate_rotation, to rounding
+    x = sigma_like_states(seed, spread=spread)
+    x[1, 3] = np.nan  # a diverged run's sigma point: NaN, ignored by the substep count
+    from tumblenav.estimators.kabir2025.model import propagate_rotation_compiled
+
+    ref = U.propagate_rotation(x[..., 0:3], x[..., 3:7], x[..., 7:9], dt)
+    out = propagate_rotation_compiled(x[..., 0:3], x[..., 3:7], x[..., 7:9], dt)
+    for a, b in zip(out, ref, strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("seed, spread", [(0, 1.0), (1, 30.0)])
+def test_compiled_stencil_model_equals_the_numpy_reference(seed, spread):
+    # Kabir 2025 eq. 22-23 with eq. 27's stencil flow, compiled (the filter's update) and numpy
+    from tumblenav.estimators.kabir2025 import observations as O
+
+    x = sigma_like_states(seed, spread=spread)
+    rng = np.random.default_rng(seed)
+    R_CI = rot.quat_to_matrix(rot.exp_quat(rng.normal(size=3)))
+    rho0, v0, cx = np.array([0.2, 10.0, -0.3]), np.array([1e-3, -2e-3, 5e-4]), [-0.25, 0.25]
+    ref = O.stencil_measurement_model(x, R_CI, rho0, v0, np.array(cx), 1.0)
+    out = O.stencil_measurement_model_compiled(x, R_CI, rho0, v0, np.array(cx), 1.0)
+    assert out.shape == ref.shape == (2, 49, 5, 9)
+    scale = np.abs(ref).max(axis=(0, 1, 2))  # per component: projections, flows
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-13 * scale.max())
+    np.testing.assert_allclose(out[..., 5:], ref[..., 5:], rtol=0, atol=1e-12 * scale[5:].max())
+
+
 @given(quat, arrays(np.float64, 14, elements=st.floats(-1.0, 1.0)), vec3)
 def test_state_boxplus_matches_the_layout(q, v, dth):
     lay = U.layout(3)

@@ -30,11 +30,11 @@ from tumblenav.estimators.kabir2025.model import (
     additive_to_error_cov,
     geometry,
     layout,
-    propagate_rotation,
+    propagate_rotation_compiled,
 )
 from tumblenav.estimators.kabir2025.observations import (
     measurement_model,
-    stencil_measurement_model,
+    stencil_measurement_model_compiled,
 )
 from tumblenav.estimators.kabir2025.tuning import (
     KabirTuning,
@@ -105,7 +105,7 @@ class _UKFModel:
         B = x.shape[0]
         coast = np.zeros(B, dtype=bool) if coast is None else np.asarray(coast, dtype=bool)
         X, _, rep = self.sigma(x, P)
-        w, q = propagate_rotation(X[..., 0:3], X[..., 3:7], X[..., 7:9], dt)
+        w, q = propagate_rotation_compiled(X[..., 0:3], X[..., 3:7], X[..., 7:9], dt)
         if self.additive:
             X = np.concatenate([w, q, X[..., 7:]], axis=-1)
             x = np.where(coast[:, None], X[:, 0], Wm @ X)
@@ -147,7 +147,7 @@ class _UKFModel:
         diag = np.arange(M)
         X, off, rep = self.sigma(x, P)
         if self.tun.flow_model == "stencil" and np.any(rows.reshape(B, N, 9)[..., 5:]):
-            Z = stencil_measurement_model(
+            Z = stencil_measurement_model_compiled(
                 X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x, self.dt
             )
         else:

@@ -19,6 +19,7 @@ from tumblenav.estimators.base import (
     StateLayout,
 )
 from tumblenav.estimators.context import context_from_scenario
+from tumblenav.estimators.kabir2025 import kernels
 from tumblenav.estimators.kabir2025.tuning import KabirTuning
 from tumblenav.frontends import projections as proj
 
@@ -90,6 +91,24 @@ def propagate_rotation(omega_T: Array, q_TI: Array, k: Array, dt: float) -> tupl
     for _ in range(n):
         w_new, q_new = rk4_step(f, (w_new, q_new), dt / n)
     return w_new, q_new
+
+
+def propagate_rotation_compiled(
+    omega_T: Array, q_TI: Array, k: Array, dt: float
+) -> tuple[Array, Array]:
+    """:func:`propagate_rotation` of stacks (..., 3), (..., 4), (..., 2) by the compiled loop
+    (:func:`tumblenav.estimators.kabir2025.kernels.propagate_stack`): the same substeps and
+    RK4, equal to rounding; for the filter's sigma points."""
+    lead = np.shape(omega_T)[:-1]
+    W, Q = kernels.propagate_stack(
+        np.ascontiguousarray(omega_T, dtype=float).reshape(-1, 3),
+        np.ascontiguousarray(q_TI, dtype=float).reshape(-1, 4),
+        np.ascontiguousarray(k, dtype=float).reshape(-1, 2),
+        float(dt),
+        _MAX_TURN_PER_STEP,
+        64,
+    )
+    return W.reshape(lead + (3,)), Q.reshape(lead + (4,))
 
 
 @dataclass(frozen=True)

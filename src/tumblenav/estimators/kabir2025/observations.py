@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from tumblenav import rotations as rot
 from tumblenav.errors import InputError
+from tumblenav.estimators.kabir2025 import kernels
 from tumblenav.estimators.kabir2025.tuning import KabirTuning
 from tumblenav.frontends import projections as proj
 
@@ -62,6 +63,29 @@ def stencil_measurement_model(
             flow += weight * wj
     h[..., 5:9] = flow / (12.0 * dt)
     return h
+
+
+def stencil_measurement_model_compiled(
+    x: Array, R_CI: Array, rho0_C: Array, rho0_dot_C: Array, centres_x: Array, dt: float
+) -> Array:
+    """:func:`stencil_measurement_model` of states ``x`` (..., nominal) at one epoch (``rho0_C``,
+    ``rho0_dot_C`` (3,)) by the compiled loop
+    (:func:`tumblenav.estimators.kabir2025.kernels.stencil_h`): equal to rounding; for the
+    filter's sigma points. Returns (..., N, 9)."""
+    from tumblenav.estimators.kabir2025.model import _MAX_TURN_PER_STEP
+
+    nom = x.shape[-1]
+    h = kernels.stencil_h(
+        np.ascontiguousarray(x, dtype=float).reshape(-1, nom),
+        np.ascontiguousarray(R_CI, dtype=float),
+        np.ascontiguousarray(rho0_C, dtype=float),
+        np.ascontiguousarray(rho0_dot_C, dtype=float),
+        np.ascontiguousarray(centres_x, dtype=float),
+        float(dt),
+        _MAX_TURN_PER_STEP,
+        64,
+    )
+    return h.reshape(x.shape[:-1] + h.shape[1:])
 
 
 def projection_sigmas(tun: KabirTuning, meas: Any) -> tuple[float, float]:

@@ -129,7 +129,8 @@ def pseudo_measurements(
         if isinstance(m, str) or not m.ok:
             fallback.append(i)
             continue
-        mean, var = m.predict(t)  # (n, 3) [u_R, v_R, u_L]
+        # (n, 3) [u_R, v_R, u_L]; the posterior variance only where it is the noise
+        mean, var = m.predict(t, variance=tun.gp_variance == "predictive")
         w4 = np.concatenate([mean, mean[:, 1:2]], axis=1)  # v_L = v_R (Kabir 2025 eq. 16-17)
         flow = proj.finite_difference_rate(w4, dt)  # eq. 27 over the whole predicted series
         if (

@@ -92,7 +92,9 @@ from tumblenav.estimators.kabir2025.gp.kernel import (  # noqa: F401
 )
 from tumblenav.estimators.kabir2025.gp.likelihood import (  # noqa: F401
     _cholesky_jittered,
+    _factor,
     _nll_grad,
+    _Objective,
     _prepare,
     _Prepared,
     _Solve,

@@ -24,11 +24,11 @@ from tumblenav.estimators.kabir2025.gp.kernel import (
     _prior_weights,
 )
 from tumblenav.estimators.kabir2025.gp.likelihood import (
+    _Objective,
     _prepare,
     _Prepared,
     _solve,
     _Theta,
-    nll_and_grad,
 )
 from tumblenav.estimators.kabir2025.gp.periods import fft_period_guess
 
@@ -61,17 +61,20 @@ class GPFit:
     _Y: Array = field(repr=False, default_factory=lambda: np.zeros(0))
     _rot: Array = field(repr=False, default_factory=lambda: np.zeros(0))
 
-    def predict(self, t: ArrayLike, derivative: bool = False) -> tuple[Array, Array]:
+    def predict(
+        self, t: ArrayLike, derivative: bool = False, variance: bool = True
+    ) -> tuple[Array, Array]:
         """Posterior mean and variance of the latent outputs at times ``t`` (s).
 
         Returns ``(mean, var)``, each (n, D), in data units.  With ``derivative=True`` it
         returns the mean and variance of ``dy/dt`` instead (exact derivative of the GP, an
-        alternative to the finite differences of Kabir 2025 eq. 27).
+        alternative to the finite differences of Kabir 2025 eq. 27).  ``variance=False``
+        skips the variance (D triangular solves over all of ``t``): ``var`` is NaN.
         """
         with threadpool_limits(limits=1, user_api="blas"):
-            return self._predict(np.asarray(t, float) - self.info["t0"], derivative)
+            return self._predict(np.asarray(t, float) - self.info["t0"], derivative, variance)
 
-    def _predict(self, t: Array, derivative: bool) -> tuple[Array, Array]:
+    def _predict(self, t: Array, derivative: bool, variance: bool = True) -> tuple[Array, Array]:
         Yn = ((self._Y - self._mean) / self._scale) @ self._rot
         D = Yn.shape[1]
         th = _Theta.unpack(self._theta, D)
@@ -83,8 +86,8 @@ class GPFit:
         phi = _feature_matrix(t, feat, th.periods, derivative)  # (n, R)
         A = phi * so.u[None, :]
         mean_r = A @ so.alpha * so.d[None, :]  # (n, D) rotated, whitened
-        var_r = np.empty_like(mean_r)
-        for j in range(D):
+        var_r = np.full_like(mean_r, np.nan)
+        for j in range(D if variance else 0):
             X = linalg.solve_triangular(so.chol[j], A.T, lower=True, check_finite=False)
             var_r[:, j] = so.d[j] * np.sum(X * X, axis=0)
         C = so.V.T @ self._rot.T  # rotated-whitened -> data axes
@@ -259,11 +262,12 @@ def _refine_periods(t: Array, Yn: Array, periods: tuple[float, float]) -> tuple[
         np.asarray(periods, float), np.array(ELL0), np.diag(np.std(Yn, 0) / sig), sig
     )
     x0 = theta[:2].copy()
+    objective = _Objective(t, Yn)
 
     def fg(x: Array) -> tuple[float, Array]:
         th = theta.copy()
         th[:2] = x
-        f, g = nll_and_grad(th, t, Yn, feat)
+        f, g = objective(th, feat)
         return f, g[:2]
 
     scale = _curvature_scale(lambda x: fg(x)[1], x0, np.full(2, 1e-7))
@@ -299,12 +303,16 @@ def _lbfgs_round(
     flat_nats: float,
     scale: Array | None = None,
     ell_floor: float = 0.25,
+    objective: _Objective | None = None,
 ) -> tuple[Array, Any, int, Array, bool]:
     """One L-BFGS-B run over the ``free`` log-hyper-parameters with the feature set of
     ``ell_min``.  Returns the new theta, scipy's result, the number of evaluations, the
     preconditioning scales (``scale``: reuse them instead of estimating) and whether the run
-    stopped early because the lengthscales grew enough for a much smaller feature set."""
+    stopped early because the lengthscales grew enough for a much smaller feature set.
+    ``objective``: :func:`nll_and_grad` on ``(t, Yn)`` with its memory (:class:`_Objective`),
+    shared by the rounds of one fit."""
     D = Yn.shape[1]
+    objective = objective if objective is not None else _Objective(t, Yn)
     feat = _Features.build(ell_min)
     bounds = [b for b, f in zip(_bounds(t, D, ell_min), free, strict=True) if f]
 
@@ -317,11 +325,11 @@ def _lbfgs_round(
     nfev = 0
     if scale is None:
         steps = np.where(np.nonzero(free)[0] >= 2, 1e-4, 1e-7)  # periods are the stiff ones
-        scale = _curvature_scale(lambda x: nll_and_grad(full(x), t, Yn, feat)[1][free], x0, steps)
+        scale = _curvature_scale(lambda x: objective(full(x), feat)[1][free], x0, steps)
         nfev += len(x0) + 1
 
     def fun(z: Array) -> tuple[float, Array]:
-        f, g = nll_and_grad(full(z * scale), t, Yn, feat)
+        f, g = objective(full(z * scale), feat)
         return f, g[free] * scale
 
     hist: list[float] = []
@@ -363,10 +371,12 @@ def _optimise(
     free: NDArray[np.bool_] | None = None,
     ell_floor: float = 0.25,
     flat_nats: float = 0.05,
+    objective: _Objective | None = None,
 ) -> tuple[Array, float, int, Any]:
     """L-BFGS-B over the ``free`` log-hyper-parameters (the others stay at ``theta0``); the
     feature set is re-built (and the optimisation continued) if the lengthscales shrink to
     its truncation level, or grow enough for a much smaller (cheaper) one."""
+    objective = objective if objective is not None else _Objective(t, Yn)
     theta = theta0.copy()
     free = np.ones(len(theta), bool) if free is None else free
     nfev = 0
@@ -375,7 +385,7 @@ def _optimise(
     for _ in range(8):
         ell_min = np.maximum(ELL_MARGIN * np.exp(theta[2:4]), ell_floor)
         theta, res, n, scale, shrunk = _lbfgs_round(
-            theta, t, Yn, maxiter, free, ell_min, flat_nats, scale, ell_floor
+            theta, t, Yn, maxiter, free, ell_min, flat_nats, scale, ell_floor, objective
         )
         nfev += n
         at_floor = np.isclose(theta[2:4], np.log(ell_min), atol=1e-6) & (
@@ -400,8 +410,11 @@ def _staged(th0: Array, t: Array, Yn: Array, maxiter: int) -> tuple[Array, float
     th1 = th0.copy()
     _, th1 = _score_periods(th1, t, Yn)  # B and sigma at their optimum for the start periods
     th1[offdiag] = 0.0
-    th1, _, n1, _ = _optimise(th1, t, Yn, maxiter=maxiter, free=diag_only, flat_nats=FLAT1)
-    theta, nll, n2, res = _optimise(th1, t, Yn, maxiter=maxiter)
+    objective = _Objective(t, Yn)
+    th1, _, n1, _ = _optimise(
+        th1, t, Yn, maxiter=maxiter, free=diag_only, flat_nats=FLAT1, objective=objective
+    )
+    theta, nll, n2, res = _optimise(th1, t, Yn, maxiter=maxiter, objective=objective)
     return theta, nll, n1 + n2, res
 
 

@@ -9,6 +9,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
+from tumblenav.estimators.kabir2025.gp import compiled
+
 Array = NDArray[np.float64]
 
 
@@ -116,7 +118,8 @@ class _Lattice:
 
 def _phases(t: Array, periods: Array, orders: tuple[int, int]) -> tuple[Array, Array]:
     """``exp(i 2 pi k t / P)`` for ``k = -M..M`` (N, 2M+1) per period, by repeated products
-    of one complex exponential (rounding grows as M eps, i.e. ~1e-14)."""
+    of one complex exponential (rounding grows as M eps, i.e. ~1e-14).  :func:`_lattice`
+    takes the same numbers from :mod:`.compiled` (``phase_powers``, ``lattice_phases``)."""
     z = []
     for P, M in zip(periods, orders, strict=True):
         base = np.exp(2j * np.pi * t / P)
@@ -127,18 +130,21 @@ def _phases(t: Array, periods: Array, orders: tuple[int, int]) -> tuple[Array, A
 
 def _lattice(t: Array, Y: Array, periods: Array, feat: _Features) -> _Lattice:
     M1, M2 = feat.M1, feat.M2
-    Z1, Z2 = _phases(t, periods, (2 * M1, 2 * M2))
+    # _phases' products (compiled, the same bits), of which only p >= 0 is summed: the sums at
+    # (-p, -q) are the conjugates of those at (p, q).
+    base1, base2 = (np.exp(2j * np.pi * t / P) for P in periods)
+    zp, Z2 = compiled.lattice_phases(
+        compiled.phase_powers(base1, 2 * M1), compiled.phase_powers(base2, 2 * M2)
+    )  # p = 0..2 M1; q = -2 M2..2 M2
     tZ2 = t[:, None] * Z2
-    # Only p >= 0 is summed: the sums at (-p, -q) are the conjugates of those at (p, q).
-    zp = Z1[:, 2 * M1 :]  # p = 0..2 M1
     half0, half1 = zp.T @ Z2, zp.T @ tZ2  # (2 M1 + 1, 4 M2 + 1)
     W0 = np.concatenate([np.conj(half0[:0:-1, ::-1]), half0], axis=0)
     W1 = np.concatenate([np.conj(half1[:0:-1, ::-1]), half1], axis=0)
     # Phi^T Y via complex sums S(n, m) = sum_t y(t) exp(i theta_nm(t)), theta = 2 pi (n/P1 + m/P2) t
-    z1 = Z1[:, 2 * M1 : 3 * M1 + 1]  # n = 0..M1
+    z1 = zp[:, : M1 + 1]  # n = 0..M1
     z2 = Z2[:, M2 : 3 * M2 + 1]  # m = -M2..M2
     tz2 = tZ2[:, M2 : 3 * M2 + 1]
-    zy = (z1[:, :, None] * Y[:, None, :]).reshape(len(t), -1)  # (N, (M1+1) D)
+    zy = compiled.weighted_phases(z1, Y)  # (N, (M1+1) D): z1[:, :, None] * Y[:, None, :]
     S = (zy.T @ z2).reshape(M1 + 1, -1, 2 * M2 + 1)[feat.n, :, feat.m + M2]  # (K, D)
     ST = (zy.T @ tz2).reshape(M1 + 1, -1, 2 * M2 + 1)[feat.n, :, feat.m + M2]
     FY = np.concatenate([S.real, S.imag[1:]], axis=0)
@@ -155,20 +161,15 @@ def _gram(lat: _Lattice, feat: _Features, periods: Array) -> tuple[Array, Array,
     and so on), and the derivatives ``E_k = Phi^T d Phi / d log P_k = T diag(g_k)`` in factored
     form: ``T`` (R, R) and the column scalings ``g`` (2, R)."""
     idx_d, idx_s = feat.lattice_index
-    K = len(feat.n)
     R = feat.R
-    W = np.stack([lat.W0.ravel(), lat.W1.ravel()])  # weights 1 and t
-    Wd, Ws = W[:, idx_d], W[:, idx_s]  # (2, K, K) at a - b and a + b
-    cc = 0.5 * (Wd.real + Ws.real)  # sum w cos_a cos_b
-    ss = 0.5 * (Wd.real - Ws.real)  # sum w sin_a sin_b
-    cs = 0.5 * (Ws.imag - Wd.imag)  # sum w cos_a sin_b
-    sc = 0.5 * (Ws.imag + Wd.imag)  # sum w sin_a cos_b
-    G = np.empty((R, R))
-    G[:K, :K], G[:K, K:], G[K:, :K], G[K:, K:] = cc[0], cs[0, :, 1:], sc[0, 1:, :], ss[0, 1:, 1:]
+    # With Wd, Ws the lattice sums at a - b and a + b (weights w = 1 and t):
+    #   sum w cos_a cos_b = (Wd + Ws).real / 2    sum w sin_a sin_b = (Wd - Ws).real / 2
+    #   sum w cos_a sin_b = (Ws - Wd).imag / 2    sum w sin_a cos_b = (Ws + Wd).imag / 2
+    # G = [[cc, cs], [sc, ss]] (weight 1), the sines without the constant feature.
     # d/dlogP_k of cos_b = sin_b * g_b t, of sin_b = -cos_b * g_b t (g_b = 2 pi idx_b / P_k):
-    # E[a, b] = g_b * sum t phi_a {sin_b | -cos_b} = T[a, b] g_b
-    T = np.empty((R, R))
-    T[:K, :K], T[:K, K:], T[K:, :K], T[K:, K:] = cs[1], -cc[1, :, 1:], ss[1, 1:, :], -sc[1, 1:, 1:]
+    # E[a, b] = g_b * sum t phi_a {sin_b | -cos_b} = T[a, b] g_b, T = [[cs, -cc], [ss, -sc]]
+    # (weight t). Gathered in one compiled pass (compiled.gram_blocks).
+    G, T = compiled.gram_blocks(lat.W0.ravel(), lat.W1.ravel(), idx_d, idx_s)
     g = np.empty((2, R))
     for k, (idx, P) in enumerate(((feat.n, periods[0]), (feat.m, periods[1]))):
         gk = 2.0 * np.pi * idx / P

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import linalg
 
+from tumblenav.estimators.kabir2025.gp import compiled
 from tumblenav.estimators.kabir2025.gp.kernel import (
     _Features,
     _gram,
@@ -80,22 +83,38 @@ def _cholesky_jittered(M: Array) -> Array:
         raise
 
 
+def _factor(G: Array, u: Array, dj: float) -> Array:
+    """Lower Cholesky factor (Fortran order, zeros above) of ``M = I + d_j U G U``: ``M``'s
+    lower triangle is written in place for ``potrf`` (no temporaries, no copy: the same LAPACK
+    call on the same numbers as ``scipy.linalg.cholesky``); on failure,
+    :func:`_cholesky_jittered` of the full ``M``."""
+    R = len(u)
+    M = compiled.lower_system(G, u, dj, np.empty((R, R), order="F"))
+    c, info = linalg.lapack.dpotrf(M, lower=1, clean=1, overwrite_a=1)
+    if info == 0:
+        return cast(Array, c)
+    if info < 0:
+        raise ValueError(f"LAPACK reported an illegal value in argument {-info} of potrf")
+    M = (u[:, None] * G * u[None, :]) * dj
+    M[np.diag_indices_from(M)] += 1.0
+    return _cholesky_jittered(M)
+
+
 def _solve(G: Array, FY: Array, s: Array, th: _Theta, N: int) -> tuple[float, _Solve, Array]:
     D = FY.shape[1]
     Bt = th.L @ th.L.T
     d, V = np.linalg.eigh(Bt)
     d = np.maximum(d, 1e-300)
     u = np.sqrt(s)
-    H = u[:, None] * G * u[None, :]
     br = (FY / th.sigma[None, :]) @ V  # (R, D) Phi^T Yr
     chol, alpha, nll = [], np.empty_like(br), N * float(np.sum(np.log(th.sigma)))
     quad = np.empty(D)
     for j in range(D):
-        M = H * d[j]
-        M[np.diag_indices_from(M)] += 1.0
-        c = _cholesky_jittered(M)
+        c = _factor(G, u, float(d[j]))  # M_j = I + d_j H, H = U G U
         ub = u * br[:, j]
-        alpha[:, j] = linalg.cho_solve((c, True), ub, check_finite=False)
+        alpha[:, j], info = linalg.lapack.dpotrs(c, ub, lower=1)  # scipy's cho_solve
+        if info != 0:
+            raise ValueError(f"LAPACK reported an illegal value in argument {-info} of potrs")
         quad[j] = d[j] * ub @ alpha[:, j]
         nll += float(np.sum(np.log(np.diag(c))))
         chol.append(c)
@@ -112,6 +131,57 @@ def nll_and_grad(
     th = _Theta.unpack(np.asarray(theta, float), D)
     feat = feat or _Features.build(th.ell)
     return _nll_grad(_prepare(t, Y, th, feat), th, Y, len(np.atleast_1d(theta)))
+
+
+class _Objective:
+    """:func:`nll_and_grad` on one data set ``(t, Y)``, remembering its last evaluations: the
+    optimisation returns to points it has evaluated (a line search's last point, a round
+    starting where the previous stopped), and the lattice and Gram matrix depend on the
+    periods only, the prior weights on the lengthscales only (the preconditioning's finite
+    differences in the other parameters share them).  Bit for bit :func:`nll_and_grad`'s
+    results (the same computation on the same numbers, or its stored output)."""
+
+    def __init__(self, t: Array, Y: Array, results: int = 32, prepared: int = 4) -> None:
+        self.t, self.Y = np.asarray(t, float), np.asarray(Y, float)
+        # how many evaluations (a few numbers each) and lattices (a few R x R arrays each)
+        # are kept: the repeats come within ~20 evaluations, the shared periods in a row
+        self.sizes = {"results": results, "prepared": prepared}
+        # key -> (feat, value): the feature set is held so that its id is not reused
+        self._results: OrderedDict[tuple[bytes, int], tuple[_Features, float, Array]] = (
+            OrderedDict()
+        )
+        self._gram: OrderedDict[tuple[bytes, int], tuple[_Features, Any]] = OrderedDict()
+        self._prior: OrderedDict[tuple[bytes, int], tuple[_Features, Any]] = OrderedDict()
+
+    def _remember(self, store: OrderedDict, key: Any, value: Any) -> None:
+        store[key] = value
+        if len(store) > self.sizes["results" if store is self._results else "prepared"]:
+            store.popitem(last=False)
+
+    def __call__(self, theta: Array, feat: _Features) -> tuple[float, Array]:
+        theta = np.asarray(theta, float)
+        key = (theta.tobytes(), id(feat))
+        hit = self._results.get(key)
+        if hit is not None:
+            self._results.move_to_end(key)
+            return hit[1], hit[2].copy()
+        D = self.Y.shape[1]
+        th = _Theta.unpack(theta, D)
+        kp = (th.periods.tobytes(), id(feat))
+        lg = self._gram.get(kp)
+        if lg is None:
+            lat = _lattice(self.t, self.Y, th.periods, feat)
+            lg = (feat, (lat, *_gram(lat, feat, th.periods)))
+            self._remember(self._gram, kp, lg)
+        kl = (th.ell.tobytes(), id(feat))
+        sw = self._prior.get(kl)
+        if sw is None:
+            sw = (feat, _prior_weights(feat, th.ell))
+            self._remember(self._prior, kl, sw)
+        pre = _Prepared(*lg[1], *sw[1])
+        f, g = _nll_grad(pre, th, self.Y, len(theta))
+        self._remember(self._results, key, (feat, f, g.copy()))
+        return f, g
 
 
 @dataclass(frozen=True)
@@ -149,12 +219,12 @@ def _nll_grad(pre: _Prepared, th: _Theta, Y: Array, n_theta: int) -> tuple[float
     dbr = np.einsum("krd,de->kre", lat.dFY / th.sigma[None, None, :], V)
     # tr(Minv X_k) with X_k = U E_k U = U T U diag(g_k) is g_k . w, w_b = sum_a Minv_ab Y_ab
     # (Y = U T U).  potri returns the lower triangle of the symmetric Minv (zeros above), so
-    # w = colsum(Minv_low * Y) + rowsum(Minv_low * Y^T) - diag(Minv) diag(Y).
-    Yt = u[:, None] * pre.T * u[None, :]
-    YtT = np.ascontiguousarray(Yt.T)
-    Yd = np.diagonal(Yt)
+    # w = colsum(Minv_low * Y) + rowsum(Minv_low * Y^T) - diag(Minv) diag(Y)
+    # (compiled.trace_weights: numpy's sums, in their order, without forming Y).
+    TT = np.ascontiguousarray(pre.T.T)
     for j in range(D):
-        Minv, info = linalg.lapack.dpotri(so.chol[j], lower=1)
+        # in place: the factor is not needed after (Fortran order: no copy either)
+        Minv, info = linalg.lapack.dpotri(so.chol[j], lower=1, overwrite_c=1)
         if info != 0:
             raise np.linalg.LinAlgError("potri failed")
         aj = so.alpha[:, j]
@@ -165,7 +235,7 @@ def _nll_grad(pre: _Prepared, th: _Theta, Y: Array, n_theta: int) -> tuple[float
         # d nll / d log s_r = (1 - Minv_rr - d s_r g_r^2) / 2
         gs = 0.5 * ((1.0 - diag_minv) - d[j] * s * g * g)
         g_l += gs @ dlogs
-        w = np.einsum("ab,ab->b", Minv, Yt) + np.einsum("ab,ab->a", Minv, YtT) - diag_minv * Yd
+        w = compiled.trace_weights(Minv, pre.T, TT, u, diag_minv)
         Tv = pre.T.T @ (u * aj)  # E_k^T (u a_j) = g_k * T^T (u a_j)
         ug = u * g
         for k in range(2):
