@@ -85,7 +85,13 @@ def test_translational_disturbance_matches_the_cw_model():
 
 
 def test_scenario_switch_and_determinism():
-    base = load_scenario("hu2024").model_copy(update={"duration_s": 20.0})
+    from tumblenav.papers.hu2024 import PAPER_SETTING  # a torque-free truth, Q = 2.5e-5
+
+    base = (
+        load_scenario("hu2024")
+        .with_updates(**PAPER_SETTING)
+        .model_copy(update={"duration_s": 20.0})
+    )
     truth_off, _ = simulate(base, seed=5)
     pn = base.process_noise.model_copy(update={"disturb_truth": True})
     on = base.model_copy(update={"process_noise": pn})

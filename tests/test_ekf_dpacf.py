@@ -26,6 +26,18 @@ from tumblenav.evaluation.metrics import chi2_bounds, nees
 from tumblenav.frontends.inertia import inertia_ratios, principal_frame, principal_moments
 from tumblenav.testing import numerical_jacobian
 
+# The setting the Hu 2024 tests below were written on (a scenario update): the paper's
+# process noise on a torque-free truth, the inertia least squares torque-free, as the built-in
+# hu2024 had before its truth got its disturbances (issue 18). They check behaviours and
+# numbers measured there; the engine comparisons run on the built-in as shipped.
+HU2024_PAPER = {
+    "process_noise.rotational_rad2_s4": 2.5e-5,
+    "process_noise.translational_m2_s4": 2e-6,
+    "process_noise.disturb_truth": False,
+    "estimator.tuning": {},
+}
+
+
 # --- strategies --------------------------------------------------------------------------
 
 quat = (
@@ -514,7 +526,11 @@ def test_sequential_update_equals_batch_update():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(duration_s=60.0, steady_state_window_s=[50.0, 60.0])
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=60.0, steady_state_window_s=[50.0, 60.0])
+    )
     _, meas = simulate(s, run_seed(4, 0))
     tun = hu.parse_tuning({})
     fe = hu.filter_view(hu.frontend([meas], tun), tun.max_dpacf_sigma_rad)
@@ -564,6 +580,9 @@ def test_frame_measurement_and_its_jacobian():
         (True, {"constraint_curvature": True, "attitude_corr_time_s": 5.0}, 2e-5, 90.0, 3, "start"),
         # the paper's white DPACF attitude noise instead of the consider frame model
         (True, {"dpacf_frame_error": "white"}, 2e-5, 90.0, 3, "start"),
+        # the frame error in the rate dynamics as white noise (the default carries it as a
+        # consider parameter, frame_error_model 'state', covered by the first case)
+        (True, {"frame_error_model": "white"}, 2e-5, 90.0, 3, "start"),
         # ekf-baseline with the curvature term diverges in runs 1, 6 and 13 of these seeds,
         # not in run 9 (chaotic: re-chosen whenever the front end or the start changes; the
         # start gate pinned at its former default; of runs 0-15 after the eighth session,
@@ -693,8 +712,9 @@ def test_frame_error_rate_noise_compiled_equals_numpy(seed, a, dt, sigma_r2):
 @given(seed=seeds, a=second_moments)
 def test_frame_error_rate_jacobian_against_finite_differences(seed, a):
     """``frame_error_rate_jacobian`` is d(omega')/du of the Euler equations with the true
-    inertia expressed in a frame turned by u (``R I R^T``, ``R = exp([u x])``, the
-    convention of ``frame_jacobian``), at u = 0; and the polhode time caps ``tau``."""
+    inertia expressed in a frame turned by u (``R I R^T``, ``R = exp([u x])``; the inverse
+    rotation of ``frame_jacobian``'s u, see the next test), at u = 0; and the polhode time
+    caps ``tau``."""
     from tumblenav.estimators.hu2024.model import frame_error_Qc, frame_error_rate_jacobian
 
     rng = np.random.default_rng(seed)
@@ -784,9 +804,9 @@ def test_frame_jacobian_against_finite_differences(seed, n_feat):
 
 @given(seed=seeds, n_feat=st.integers(1, 4), half=st.integers(-1, 2))
 def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
-    """Kernel ``_turn`` (any rotation, or a half turn) and ``_consider_cov`` (frame covariance
-    and branch mixture) against ``_turn_state`` and ``frame_consider_cov``; turning back
-    restores the state exactly."""
+    """Kernel ``_turn`` (any rotation, or a half turn) and ``_turned_error`` +
+    ``_consider_cov`` (the own error turned, frame covariance and branch mixture) against
+    ``_turn_state`` and ``frame_consider_cov``; turning back restores the state exactly."""
     from tumblenav.estimators.hu2024 import kernels as _hu_kernel
 
     rng = np.random.default_rng(seed)
@@ -817,7 +837,9 @@ def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
     S = A3 @ np.swapaxes(A3, -1, -2)
     ref = hu.frame_consider_cov(x, P, C[None], lay, p_turn[None], mu[None], S[None])[0]
     out = np.empty_like(ref)
-    _hu_kernel._consider_cov(x[0], P[0], C, p_turn, mu, S, hu._FLIPS, n_feat, out)
+    Px = P[0].copy()  # the kernel adds the own error turned (issue 18) before _consider_cov
+    _hu_kernel._turned_error(P[0], C, n_feat, Px)
+    _hu_kernel._consider_cov(x[0], Px, C, p_turn, mu, S, hu._FLIPS, n_feat, out)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-10)
     assert _hu_kernel.P_TURN_MIN == hu.P_TURN_MIN
 
@@ -954,8 +976,14 @@ def test_start_waits_for_the_ratios_but_not_forever():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    base = load_scenario("hu2024").with_updates(
-        duration_s=60.0, steady_state_window_s=[50.0, 60.0], **{"sensor.noise.angular_rad": 2e-5}
+    base = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=60.0,
+            steady_state_window_s=[50.0, 60.0],
+            **{"sensor.noise.angular_rad": 2e-5},
+        )
     )
     meas = [simulate(base, run_seed(base.montecarlo.seed, 112))[1]]
 
@@ -979,10 +1007,14 @@ def test_mass_centre_from_rotation_finds_the_mass_centre():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(
-        duration_s=40.0,
-        steady_state_window_s=[30.0, 40.0],
-        **{"sensor.noise.angular_rad": 1e-6},
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=40.0,
+            steady_state_window_s=[30.0, 40.0],
+            **{"sensor.noise.angular_rad": 1e-6},
+        )
     )
     n = s.chaser.orbit.mean_motion_rad_s
     tun = hu.parse_tuning({})
@@ -1028,7 +1060,11 @@ def test_features_from_rotation_refines_features_and_mass_centre():
         U, _, Vt = np.linalg.svd(b.T @ a)
         return Vt.T @ np.diag([1, 1, np.linalg.det(Vt.T @ U.T)]) @ U.T
 
-    s = load_scenario("hu2024").with_updates(duration_s=32.0, steady_state_window_s=[30.0, 32.0])
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=32.0, steady_state_window_s=[30.0, 32.0])
+    )
     n = s.chaser.orbit.mean_motion_rad_s
     tun = hu.parse_tuning({"template_refine_s": 0})  # the template of one sighting
     sims = [simulate(s, run_seed(5, k)) for k in range(16)]
@@ -1081,10 +1117,14 @@ def test_dpacf_emission_threshold_does_not_change_the_filter():
     # default 0.05 since the least squares lost its (2h+1) allowance (stereo_points.gls)
     for emit in (0.003, 0.3):
         tuning = {"dpacf_emit_sigma_rad": emit, "max_dpacf_sigma_rad": 0.003}
-        s = load_scenario("hu2024").with_updates(
-            duration_s=60.0,
-            steady_state_window_s=[50.0, 60.0],
-            **{"estimator.tuning": tuning},
+        s = (
+            load_scenario("hu2024")
+            .with_updates(**HU2024_PAPER)
+            .with_updates(
+                duration_s=60.0,
+                steady_state_window_s=[50.0, 60.0],
+                **{"estimator.tuning": tuning},
+            )
         )
         sims = [simulate(s, run_seed(5, k)) for k in range(2)]
         out[emit] = hu.run_filter(s, [m for _, m in sims], True)
@@ -1107,15 +1147,19 @@ def test_iterated_update_after_a_long_occlusion():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(
-        duration_s=100.0,
-        steady_state_window_s=[90.0, 100.0],
-        **{
-            "target.features_T_m.count": 4,
-            "target.omega0_T_rad_s": [0.05, -0.12, 0.08],
-            "target.v0_L_m_s": [0.0, 0.0, 0.0],
-            "sensor.noise.angular_rad": 1e-5,
-        },
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=100.0,
+            steady_state_window_s=[90.0, 100.0],
+            **{
+                "target.features_T_m.count": 4,
+                "target.omega0_T_rad_s": [0.05, -0.12, 0.08],
+                "target.v0_L_m_s": [0.0, 0.0, 0.0],
+                "sensor.noise.angular_rad": 1e-5,
+            },
+        )
     )
     truth, meas = simulate(s, run_seed(2024, 6))
 
@@ -1149,8 +1193,12 @@ def test_iterated_update_is_second_order_in_the_linearisation_point():
 
     rng = np.random.default_rng(3)
     tuning = {"max_ratio_sigma": 0.03}  # started by 30 s
-    s = load_scenario("hu2024").with_updates(
-        duration_s=40.0, steady_state_window_s=[30.0, 40.0], **{"estimator.tuning": tuning}
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=40.0, steady_state_window_s=[30.0, 40.0], **{"estimator.tuning": tuning}
+        )
     )
     meas = simulate(s, run_seed(5, 0))[1]
     res = hu.run_filter(s, [meas], True, engine="numpy")
@@ -1212,3 +1260,236 @@ def test_compiled_fold_equals_the_reference_fold_on_runs_drawn_at_random(seed, n
         assert np.array_equal(np.isfinite(a[key]), np.isfinite(b[key])), key
         fin = np.isfinite(b[key])
         assert np.allclose(a[key][fin], b[key][fin], rtol=1e-6, atol=atol), key
+
+
+# --- issue 18: the frame error as a consider parameter, the start's covariance -----------
+
+
+@given(seed=seeds, a=second_moments)
+def test_consider_state_couples_the_rate_by_minus_G(seed, a):
+    """The consider state's u is ``frame_jacobian``'s: the truth's coordinates are
+    ``exp([u x])`` times the filter frame's (``D(u) = turn(x, exp(u)) boxminus x``). In the
+    filter's frame the true inertia is then ``R^T I R`` and the rate error gains ``-G u``
+    (``G = frame_error_rate_jacobian``), the coupling of ``filter.HuSteps.predict`` and
+    the kernel: checked by central differences of the Euler equations."""
+    from tumblenav.estimators.hu2024.model import frame_error_rate_jacobian
+
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=3) * 0.1
+    p = ratios_of(a)
+    lay, x = _random_state(rng, 1)
+    x[0, 4:7] = w
+    u = rng.normal(size=3) * 1e-7
+    # frame_jacobian's convention: the rate in the truth's frame is exp([u x]) times ours
+    D = hu.frame_jacobian(x, lay)[0] @ u
+    np.testing.assert_allclose(D[3:6], rot.exp_map(u) @ w - w, atol=1e-6 * np.linalg.norm(u))
+
+    def wdot(u):  # the truth's Euler equations in the filter's frame
+        R = rot.exp_map(u)
+        Iu = R.T @ np.diag(moments_of(a)) @ R
+        return np.linalg.solve(Iu, np.cross(Iu @ w, w))
+
+    eps = 1e-6
+    Gn = np.stack([(wdot(eps * e) - wdot(-eps * e)) / (2 * eps) for e in np.eye(3)], 1)
+    G = frame_error_rate_jacobian(w, p)
+    np.testing.assert_allclose(-G, Gn, atol=1e-9 * max(1.0, np.abs(Gn).max()))
+
+
+@given(seed=seeds, a=second_moments, dt=st.floats(0.01, 0.5))
+def test_compiled_consider_state_pieces_equal_numpy(seed, a, dt):
+    """The kernel's pieces of the frame error as a consider parameter against numpy's:
+    the transition's coupling block (``_frame_coupling``) against ``discretise`` of the
+    augmented F, the prediction with it (``_predict_cov`` + ``_predict_cross``) against
+    ``Phi_a P Phi_a^T + Q``, the carry-over between frames (``_frame_transition``), the cross
+    terms of the report (``_cross_terms``) and the own error turned (``_turned_error``)."""
+    from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+    from tumblenav.estimators.hu2024.frame import frame_error_transition, turned_error_cov
+    from tumblenav.estimators.hu2024.model import frame_error_rate_jacobian
+
+    rng = np.random.default_rng(seed)
+    w, p = rng.normal(size=3) * 0.1, ratios_of(a)
+    G = -frame_error_rate_jacobian(w, p)
+    Fa = np.zeros((12, 12))
+    Fa[:9, :9] = hu.core_F(w, p, 0.0, rotation_only=True)
+    Fa[3:6, 9:] = G
+    Qa = np.zeros((12, 12))
+    Qa[:9, :9] = hu.core_Qc(p, 1e-8, 0.0)[:9, :9]
+    Phi_a, Q_a = discretise(Fa, Qa, dt)
+    ws = np.empty((9, 9, 9))
+    Phr, Qr = _hu_kernel._rotation_discrete(w, p, 1e-8, dt, ws, np.zeros((3, 3)))
+    Gam = np.empty((9, 3))
+    _hu_kernel._frame_coupling(ws, G, dt, Gam)
+    np.testing.assert_allclose(Gam, Phi_a[:9, 9:], rtol=1e-10, atol=1e-16)
+    np.testing.assert_allclose(Qr, Q_a[:9, :9], rtol=1e-10, atol=1e-22)
+    assert np.all(Q_a[9:] == 0.0) and np.all(Phi_a[9:, 9:] == np.eye(3))
+    # the prediction of a P with u's rows and columns after 2 features
+    lay, x = _random_state(rng, 2)
+    d = lay.dim
+    A = rng.normal(size=(d + 3, d + 3))
+    P = A @ A.T
+    Pht, Qt = hu._translation_discrete(1.1e-3, 1e-9, dt)
+    Phi = np.eye(d + 3)
+    rows = np.r_[0:9, d : d + 3]
+    Phi[np.ix_(rows, rows)] = Phi_a
+    Phi[9:15, 9:15] = Pht
+    Q = np.zeros((d + 3, d + 3))
+    Q[np.ix_(rows, rows)] = Q_a
+    Q[9:15, 9:15] = Qt
+    ref = Phi @ P @ Phi.T + Q
+    Pc = P.copy()
+    _hu_kernel._predict_cov(Pc, Phr, Qr, Pht, Qt)
+    _hu_kernel._predict_cross(Pc, Gam, d)
+    np.testing.assert_allclose(Pc, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+    # the carry-over between two frames, both branches (nested and not)
+    B1, B2 = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+    Co = B1 @ B1.T + np.eye(3)
+    for Cn in (0.5 * Co, B2 @ B2.T):
+        An = frame_error_transition(Co[None], Cn[None])[0]
+        Ac = np.empty((3, 3))
+        _hu_kernel._frame_transition(Co, Cn, Ac)
+        np.testing.assert_allclose(Ac, An, rtol=1e-10, atol=1e-12)
+    # the report's cross terms and the turned own error
+    Pxu = P[:d, d:]
+    Ju = hu.frame_jacobian(x, lay)[0]
+    out = np.empty((d, d))
+    _hu_kernel._cross_terms(x[0], P, 2, d, out)
+    np.testing.assert_allclose(out, P[:d, :d] + Ju @ Pxu.T + Pxu @ Ju.T, rtol=1e-12, atol=1e-12)
+    C = B1 @ B1.T * 1e-4
+    ref = turned_error_cov(P[None, :d, :d], C[None], lay)[0]
+    out = np.zeros((d, d))
+    _hu_kernel._turned_error(P, C, 2, out)
+    np.testing.assert_allclose(out, ref, rtol=1e-10, atol=1e-14 * np.abs(ref).max())
+
+
+def test_frame_error_transition_keeps_the_joint_covariance():
+    """``frame_error_transition``: for nested least squares (``C_new <= C_old``) the later
+    error is the earlier one's regression, ``A = C_new C_old^-1``; otherwise the whitened
+    error is kept, ``A = L_new L_old^-1``. Either way ``[[C_old, C_old A^T], [A C_old,
+    C_new]]`` is a covariance (positive semi-definite) and so is the state's augmented P
+    carried with it; zero where ``C_old`` is singular."""
+    from tumblenav.estimators.hu2024.frame import frame_error_transition
+
+    rng = np.random.default_rng(18)
+    for _ in range(200):
+        B1, B2 = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        Co = B1 @ B1.T + 1e-3 * np.eye(3)
+        nested = rng.random() < 0.5
+        Cn = Co @ np.linalg.inv(Co + B2 @ B2.T) @ Co if nested else B2 @ B2.T + 1e-3 * np.eye(3)
+        A = frame_error_transition(Co[None], Cn[None])[0]
+        if nested:
+            np.testing.assert_allclose(A, Cn @ np.linalg.inv(Co), rtol=1e-8, atol=1e-10)
+        J = np.block([[Co, Co @ A.T], [A @ Co, Cn]])
+        assert np.linalg.eigvalsh(J)[0] > -1e-9 * np.abs(J).max()
+    assert np.all(frame_error_transition(np.zeros((1, 3, 3)), np.eye(3)[None]) == 0.0)
+
+
+def test_turned_error_cov_is_the_second_moment_of_the_turned_error():
+    """``turned_error_cov``: the filter's own error ``eps ~ N(0, P)`` turned by an
+    independent frame error ``u ~ N(0, C)``: ``[u x] eps / 2`` on the attitude, ``[u x] eps``
+    on the rate and each feature, nothing on the ratios, position and velocity; against
+    200 000 samples (largest entry within 1.5 %)."""
+    from tumblenav.estimators.hu2024.frame import turned_error_cov
+
+    rng = np.random.default_rng(3)
+    lay = hu.layout(2)
+    d = lay.dim
+    A = rng.normal(size=(d, d))
+    P = A @ A.T / d
+    B = rng.normal(size=(3, 3))
+    C = B @ B.T * 0.01
+    T = turned_error_cov(P[None], C[None], lay)[0]
+    n = 200_000
+    e = rng.multivariate_normal(np.zeros(d), P, n)
+    u = rng.multivariate_normal(np.zeros(3), C, n)
+    out = np.zeros((n, d))
+    for sl, s_ in (
+        (slice(0, 3), 0.5),
+        (slice(3, 6), 1.0),
+        (slice(15, 18), 1.0),
+        (slice(18, 21), 1.0),
+    ):
+        out[:, sl] = s_ * np.cross(u, e[:, sl])
+    M = out.T @ out / n
+    assert np.abs(M - T).max() < 0.015 * np.abs(T).max()
+    assert np.all(T[6:15] == 0.0) and np.all(T[:, 6:15] == 0.0)
+
+
+@pytest.mark.parametrize("n_orbit", [0.0, 1.1e-3])
+def test_force_deviation_cov_is_the_hill_motions_response_to_a_white_force(n_orbit):
+    """``init.force_deviation_cov``: the covariance of the mass centre's deviation from the
+    Hill motion of the window's first state under a white force of density q. At n = 0 the
+    double integrator's ``q (t_<^2 t_> / 2 - t_<^3 / 6)`` per axis (exact: the discrete
+    model is exact there); in LEO, on the filters' 10 Hz grid, against Van Loan's integral
+    of the CW model (expm; the discrete model's series is the filters' own, 1e-8 relative
+    here)."""
+    from scipy.linalg import expm
+
+    from tumblenav.dynamics.relative_orbit import hill_matrix
+    from tumblenav.estimators.hu2024.init import force_deviation_cov
+
+    q = 1e-9
+    t = np.round(np.arange(0.0, 30.05, 0.1), 10)
+    C = force_deviation_cov(t, n_orbit, q)
+    m = len(t)
+    assert C.shape == (m, 3, m, 3)
+    M = C.reshape(3 * m, 3 * m)
+    np.testing.assert_allclose(M, M.T, atol=1e-30)
+    assert np.linalg.eigvalsh(M)[0] > -1e-12 * np.abs(M).max()
+    lo, hi = np.minimum.outer(t, t), np.maximum.outer(t, t)
+    if n_orbit == 0.0:
+        ref = q * (lo**2 * hi / 2 - lo**3 / 6)
+        for a in range(3):
+            np.testing.assert_allclose(C[:, a, :, a], ref, rtol=1e-9, atol=1e-30)
+        return
+    F = hill_matrix(n_orbit)
+    Qc = np.zeros((6, 6))
+    Qc[3:, 3:] = q * np.eye(3)
+
+    def P_at(s):  # Van Loan: the covariance at s of the state deviation from zero
+        V = expm(np.block([[-F, Qc], [np.zeros((6, 6)), F.T]]) * s)
+        Phi = V[6:, 6:].T
+        return Phi @ V[:6, 6:]
+
+    pick = [0, 1, 2, 5, 13, 70, 300]
+    for i in pick:
+        for j in pick:
+            if j > i:
+                continue
+            ref = (cw_stm(n_orbit, t[i] - t[j]) @ P_at(t[j]))[:3, :3]
+            np.testing.assert_allclose(C[i, :, j, :], ref, rtol=1e-6, atol=1e-8 * np.abs(M).max())
+
+
+@given(seed=seeds)
+def test_pose_feature_sensitivity_against_finite_differences(seed):
+    """``init.pose_feature_sensitivity`` is minus the derivative of the refined start pose
+    (``refine_start_pose``: attitude by boxminus, position) with respect to the features it
+    was fitted with (``e_z = -G e_f``: the estimate moves by ``-G`` times a shift of the
+    features). ``G`` is the Gauss-Newton sensitivity: it leaves out the residuals' own
+    curvature, here 0.1 mm residuals on a 20-m fit, 3e-4 of the derivative (measured),
+    hence the 2e-3 relative tolerance."""
+    from tumblenav.estimators.hu2024.init import pose_feature_sensitivity
+
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(-1.5, 1.5, size=(5, 3))
+    use = np.ones(5, dtype=bool)
+    q = rot.quat_normalize(rng.normal(size=4))
+    R_LI = rot.quat_to_matrix(rot.quat_normalize(rng.normal(size=4)))
+    r = np.array([20.0, 0.0, 3.0])
+    los = r / np.linalg.norm(r)
+    B_ = np.linalg.svd(np.eye(3) - np.outer(los, los))[0][:, :2]
+    cov = np.repeat((0.008**2 * np.outer(los, los) + 4e-4**2 * B_ @ B_.T)[None], 5, axis=0)
+    R_LT = R_LI @ rot.quat_to_matrix(q).T
+    p = r + f @ R_LT.T + rng.normal(size=(5, 3)) * 1e-4
+    q0, r0, C6 = hu.refine_start_pose(p, cov, f, q, r, R_LI)
+    G = pose_feature_sensitivity(C6, R_LI @ rot.quat_to_matrix(q0).T, f, cov, use)
+    eps = 1e-6
+    for k in range(15):
+        d = np.zeros(15)
+        d[k] = eps
+        out = []
+        for sgn in (1, -1):
+            q1, r1, _ = hu.refine_start_pose(p, cov, f + sgn * d.reshape(5, 3), q0, r0, R_LI)
+            out.append(np.concatenate([rot.boxminus(q1, q0), r1 - r0]))
+        np.testing.assert_allclose(
+            (out[0] - out[1]) / (2 * eps), -G[:, k], rtol=2e-3, atol=2e-3 * np.abs(G).max()
+        )

@@ -34,6 +34,18 @@ from tumblenav.frontends import (
     triplet_score,
 )
 
+# The setting the Hu 2024 tests below were written on (a scenario update): the paper's
+# process noise on a torque-free truth, the inertia least squares torque-free, as the built-in
+# hu2024 had before its truth got its disturbances (issue 18). They check behaviours and
+# numbers measured there; the engine comparisons run on the built-in as shipped.
+HU2024_PAPER = {
+    "process_noise.rotational_rad2_s4": 2.5e-5,
+    "process_noise.translational_m2_s4": 2e-6,
+    "process_noise.disturb_truth": False,
+    "estimator.tuning": {},
+}
+
+
 F_PX = 1000.0
 B_M = 0.5
 PP = np.array([640.0, 480.0])
@@ -584,8 +596,10 @@ def _hu_measurements(n_runs, seed, **updates):
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(
-        duration_s=40.0, steady_state_window_s=[30.0, 40.0], **updates
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=40.0, steady_state_window_s=[30.0, 40.0], **updates)
     )
     return [simulate(s, run_seed(seed, k))[1] for k in range(n_runs)]
 
@@ -914,7 +928,11 @@ def test_refinement_schedule_is_causal_and_refines():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(duration_s=50.0, steady_state_window_s=[40.0, 50.0])
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=50.0, steady_state_window_s=[40.0, 50.0])
+    )
     sims = [simulate(s, run_seed(5, k)) for k in range(3)]
     meas = [m for _, m in sims]
     scheds = {"none": 0.0, "8": [8.0], "8,10": [8.0, 10.0], "8,10,30": [8.0, 10.0, 30.0]}
@@ -981,10 +999,14 @@ def test_refined_template_steadies_g_and_is_causal():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(
-        duration_s=45.0,
-        steady_state_window_s=[40.0, 45.0],
-        **{"target.v0_L_m_s": [0.0, 0.0, 0.0]},
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=45.0,
+            steady_state_window_s=[40.0, 45.0],
+            **{"target.v0_L_m_s": [0.0, 0.0, 0.0]},
+        )
     )
     sims = [simulate(s, run_seed(3, k)) for k in range(4)]
     meas = [m for _, m in sims]
@@ -1070,7 +1092,11 @@ def test_refinement_is_per_run_in_a_batch():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(duration_s=35.0, steady_state_window_s=[30.0, 35.0])
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=35.0, steady_state_window_s=[30.0, 35.0])
+    )
     meas = [simulate(s, run_seed(4, k))[1] for k in range(3)]
     late = meas[0].observed.copy()
     late[:100] = False
@@ -1099,7 +1125,11 @@ def test_refinement_leaves_no_gap_when_g_starts_off_the_solution_grid():
     from tumblenav.scenario import load_scenario
     from tumblenav.simulation import simulate
 
-    s = load_scenario("hu2024").with_updates(duration_s=45.0, steady_state_window_s=[40.0, 45.0])
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(duration_s=45.0, steady_state_window_s=[40.0, 45.0])
+    )
     m = simulate(s, run_seed(4, 0))[1]
     late = m.observed.copy()
     late[:13] = False
@@ -1183,3 +1213,97 @@ def test_inertia_least_squares_covariance_against_monte_carlo():
     assert min(blind) > 100.0, blind
     indep = _synthetic_frames(1e-8, 1e-8, "independent")
     assert all(x < 2.0 for x in indep), indep
+
+
+def _joint_trials(trials, seed, psi_sigma, q_force):
+    """Synthetic joint fits (stereo_points.joint_features): six features in +-1.5 m tumbling
+    (0.1 rad/s of precession, 0.07 rad/s of spin), 20 s at 10 Hz, 20 m away, points 8 mm deep and 0.4 mm wide; the measured
+    attitudes off by a slowly varying error (a constant and a 30-s sinusoid of
+    ``psi_sigma`` each, plus white 1e-4 rad: a template's error turned into attitude by the
+    changing view) and the mass centre pushed by a white force of density ``q_force``
+    (double integrator). Yields the truth and the fits as (with cov_dev, fixed attitudes),
+    (with cov_dev, free attitudes), (without cov_dev, free)."""
+    from tumblenav.frontends import stereo_points
+
+    rng = np.random.default_rng(seed)
+    m, N, dt = 200, 6, 0.1
+    t = np.arange(m) * dt
+    Phi = np.concatenate([np.broadcast_to(np.eye(3), (m, 3, 3)), t[:, None, None] * np.eye(3)], 2)
+    lo, hi = np.minimum.outer(t, t), np.maximum.outer(t, t)
+    Qd = q_force * (lo**2 * hi / 2 - lo**3 / 6)
+    cov_dev = np.einsum("jk,ab->jakb", Qd, np.eye(3))
+    L = np.linalg.cholesky(Qd + 1e-30 * np.eye(m))
+    for _ in range(trials):
+        f = rng.uniform(-1.5, 1.5, size=(N, 3))
+        f -= f.mean(0) * 0.5  # the mass centre away from the features' centroid
+        ax1, ax2 = rng.normal(size=(2, 3))
+        ax1, ax2 = ax1 / np.linalg.norm(ax1), ax2 / np.linalg.norm(ax2)
+        R0 = rot.quat_to_matrix(rot.quat_normalize(rng.normal(size=4)))
+        # a tumble: precession about an inertial axis and a spin about a body axis
+        R = rot.exp_map(0.1 * t[:, None] * ax1) @ R0 @ rot.exp_map(0.07 * t[:, None] * ax2)
+        a = np.array([20.0, 1.0, -2.0]) + rng.normal(size=3)
+        a = np.concatenate([a, rng.normal(size=3) * 0.01])
+        r = Phi @ a + (L @ rng.normal(size=(m, 3)))
+        los = a[:3] / np.linalg.norm(a[:3])
+        B_ = np.linalg.svd(np.eye(3) - np.outer(los, los))[0][:, :2]
+        ci = 0.008**2 * np.outer(los, los) + 4e-4**2 * B_ @ B_.T
+        cov = np.broadcast_to(ci, (m, N, 3, 3)).copy()
+        p = r[:, None, :] + np.einsum("jab,ib->jia", R, f)
+        p += rng.multivariate_normal(np.zeros(3), ci, size=(m, N))
+        psi = rng.normal(size=3) * psi_sigma + np.outer(
+            np.sin(2 * np.pi * t / 30 + rng.uniform(0, 6.3)), rng.normal(size=3) * psi_sigma
+        )
+        psi += rng.normal(size=(m, 3)) * 1e-4
+        R_meas = R @ rot.exp_map(psi)
+        cov_G = np.broadcast_to((1.5 * psi_sigma**2 + 1e-8) * np.eye(3), (m, 3, 3)).copy()
+        use = np.ones((m, N), dtype=bool)
+        f0 = f + rng.normal(size=f.shape) * 0.005
+        fits = [
+            stereo_points.joint_features(Phi, R_meas, p, cov, cov_G, use, f0, cov_dev=cov_dev),
+            stereo_points.joint_features(
+                Phi, R_meas, p, cov, cov_G, use, f0, cov_dev=cov_dev, free_attitudes=True
+            ),
+            stereo_points.joint_features(Phi, R_meas, p, cov, cov_G, use, f0, free_attitudes=True),
+        ]
+        yield f, fits
+
+
+def _shape_and_shift_nees(f, fit):
+    """NEES/dof of the fitted features' shape (their rotation and shift about the truth's
+    projected out) and of their common shift."""
+    _, fe, C, idx = fit
+    e = (fe - f[idx]).ravel()
+    n = len(idx)
+    A = np.zeros((3 * n, 6))
+    for i in range(n):
+        A[3 * i : 3 * i + 3, :3] = -rot.skew(f[idx][i])
+        A[3 * i : 3 * i + 3, 3:] = np.eye(3)
+    Rm = np.eye(3 * n) - A @ np.linalg.pinv(A)
+    shape = e @ Rm @ np.linalg.pinv(Rm @ C @ Rm, rcond=1e-10) @ Rm @ e / (3 * n - 6)
+    S = np.kron(np.ones((1, n)) / n, np.eye(3))
+    es = S @ e
+    return shape, es @ np.linalg.solve(S @ C @ S.T, es) / 3
+
+
+def test_joint_features_with_free_attitudes_is_honest_under_correlated_attitude_errors():
+    """Issue 18: the measured G attitudes carry their template's error, fixed in G and so
+    correlated from epoch to epoch; the joint fit that takes them as measured with
+    independent errors reports the features' shape too small (NEES/dof 5.0 over 40 seeded
+    synthetic runs, 1.06 without the attitude errors), the fit with every epoch's attitude
+    an unknown (``free_attitudes``) reports it honestly (1.11). Under a white force on the
+    mass centre (1e-9 m^2/s^3) the covariance with the force's deviation from the Hill
+    motion (``cov_dev``) covers the features' common shift (NEES/dof 1.16), without it the
+    shift is over-confident (55)."""
+    fixed, free, shift_dev, shift_none, shape_free = [], [], [], [], []
+    for f, (a, b, c) in _joint_trials(40, 18, 3e-4, 1e-9):
+        fixed.append(_shape_and_shift_nees(f, a)[0])
+        s_b, h_b = _shape_and_shift_nees(f, b)
+        free.append(s_b)
+        shift_dev.append(h_b)
+        shift_none.append(_shape_and_shift_nees(f, c)[1])
+        shape_free.append(_shape_and_shift_nees(f, c)[0])
+    assert np.mean(fixed) > 3.0
+    assert 0.7 < np.mean(free) < 1.5
+    assert 0.7 < np.mean(shape_free) < 1.5
+    assert 0.7 < np.mean(shift_dev) < 1.6
+    assert np.mean(shift_none) > 10.0

@@ -12,6 +12,17 @@ from tumblenav.estimators.hu2024.model import layout, recentre_unseen
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
 
+# The setting the Hu 2024 tests below were written on (a scenario update): the paper's
+# process noise on a torque-free truth, the inertia least squares torque-free, as the built-in
+# hu2024 had before its truth got its disturbances (issue 18). They check behaviours and
+# numbers measured there; the engine comparisons run on the built-in as shipped.
+HU2024_PAPER = {
+    "process_noise.rotational_rad2_s4": 2.5e-5,
+    "process_noise.translational_m2_s4": 2e-6,
+    "process_noise.disturb_truth": False,
+    "estimator.tuning": {},
+}
+
 
 def test_recentre_unseen_puts_the_feature_at_its_sighting():
     rng = np.random.default_rng(3)
@@ -34,15 +45,19 @@ def test_recentre_unseen_puts_the_feature_at_its_sighting():
 
 
 def _selfocc(duration: float):
-    return load_scenario("hu2024").with_updates(
-        duration_s=duration,
-        steady_state_window_s=[duration - 20.0, duration],
-        **{
-            "target.v0_L_m_s": [0.0, 0.0, 0.0],
-            "target.features_T_m.count": 10,
-            "occlusion.self_occlusion": True,
-            "occlusion.windows": [],
-        },
+    return (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=duration,
+            steady_state_window_s=[duration - 20.0, duration],
+            **{
+                "target.v0_L_m_s": [0.0, 0.0, 0.0],
+                "target.features_T_m.count": 10,
+                "occlusion.self_occlusion": True,
+                "occlusion.windows": [],
+            },
+        )
     )
 
 
@@ -81,10 +96,14 @@ def test_baseline_restarts_after_a_long_occlusion():
     stereo_points.gls, run 5 since the start gate and the unbiased early rows, issue 18:
     which run loses track is chaotic); it is now started again from the
     measurements, as at the start, and reports estimates to the end, the restart counted."""
-    s = load_scenario("hu2024").with_updates(
-        duration_s=110.0,
-        steady_state_window_s=[100.0, 110.0],
-        **{"occlusion.windows": [{"start_s": 60.0, "end_s": 90.0}]},
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            duration_s=110.0,
+            steady_state_window_s=[100.0, 110.0],
+            **{"occlusion.windows": [{"start_s": 60.0, "end_s": 90.0}]},
+        )
     )
     tr, m = simulate(s, run_seed(2024, 5))
     res = hu.run_filter(s, [m], False)

@@ -32,8 +32,14 @@ def test_hu2024_numbers_are_the_papers():
     assert s.target.omega0_T_rad_s == [0.1, 0.1, 0.1]
     assert s.n_features == 6 and s.rate_hz == 10.0 and s.duration_s == 200.0
     assert s.occlusion.windows[0].end_s - s.occlusion.windows[0].start_s == 20.0
-    assert s.process_noise.translational_m2_s4 == 2e-6
-    assert s.process_noise.rotational_rad2_s4 == 2.5e-5
+    # the paper's filter noise on a torque-free truth is the reproduce recipe's setting; the
+    # built-in's truth carries small disturbances that its filter assumes (issue 18)
+    from tumblenav.papers.hu2024 import PAPER_SETTING
+
+    p = s.with_updates(**PAPER_SETTING).process_noise
+    assert p.translational_m2_s4 == 2e-6 and p.rotational_rad2_s4 == 2.5e-5
+    assert not p.disturb_truth
+    assert s.process_noise.disturb_truth
     assert s.montecarlo.runs == 500
 
 

@@ -22,6 +22,16 @@ from tumblenav.scenario import load_scenario
 
 NOISE_RAD = (0.1e-5, 0.5e-5, 2e-5, 5e-5)  # Hu 2024 Sec. 5 (1)
 ESTIMATORS = ("ekf-dpacf", "ekf-baseline")
+# The paper's setting (Hu 2024 Sec. 5): its filter noise, sigma_t^2 = 2e-6 and sigma_r^2 =
+# 2.5e-5, on a torque-free truth, the inertia least squares torque-free (eq. 10). The built-in
+# hu2024 carries small disturbances that its filter assumes instead (issue 18); `reproduce`
+# keeps the paper's.
+PAPER_SETTING = {
+    "process_noise.translational_m2_s4": 2e-6,
+    "process_noise.rotational_rad2_s4": 2.5e-5,
+    "process_noise.disturb_truth": False,
+    "estimator.tuning": {},
+}
 # The paper shows figures only; these are the issue's targets at 2e-5 rad, window [150, 200] s.
 TARGETS_2E5 = {
     "attitude_deg": 0.5,
@@ -53,7 +63,7 @@ def reproduce(
     console: Console | None = None,
     scheduler: str | None = None,
 ) -> dict[str, Any]:
-    base = load_scenario("hu2024")
+    base = load_scenario("hu2024").with_updates(**PAPER_SETTING)
     runs = runs or base.montecarlo.runs
     cases = []
     for noise in NOISE_RAD:

@@ -23,7 +23,12 @@ from tumblenav.estimators.base import (
     fold,
 )
 from tumblenav.estimators.context import context_from_scenario
-from tumblenav.estimators.hu2024.frame import _follow_dpacf_branch, _reframe, frame_consider_cov
+from tumblenav.estimators.hu2024.frame import (
+    _follow_dpacf_branch,
+    _reframe,
+    frame_consider_cov,
+    frame_error_transition,
+)
 from tumblenav.estimators.hu2024.init import _initial_state
 from tumblenav.estimators.hu2024.model import (
     _FLIPS,
@@ -37,6 +42,7 @@ from tumblenav.estimators.hu2024.model import (
     core_F,
     core_Qc,
     frame_error_Qc,
+    frame_error_rate_jacobian,
     layout,
     propagate_rotation,
     recentre_unseen,
@@ -69,6 +75,14 @@ def run_filter(
     engine = engine or ENGINE
     tun = parse_tuning(scenario.estimator.tuning, use_dpacf)
     consider = use_dpacf and tun.dpacf_frame_error == "consider"
+    # the frame error as a consider (Schmidt) parameter: 3 more rows and columns of P (the
+    # gated batch update works on the state's own: there the white model stands in)
+    schmidt = (
+        consider
+        and tun.frame_error_dynamics_s > 0
+        and tun.frame_error_model == "state"
+        and tun.gate_probability is None
+    )
     refine = tun.refine_start
     # iterated update: prior attitude variance (trace) above this (0: never)
     iter_var = 3.0 * tun.iterate_sigma_rad**2
@@ -90,7 +104,8 @@ def run_filter(
     fe = filter_view(fe_all, tun.max_dpacf_sigma_rad)
     B, n, N = fe.usable.shape
     lay = layout(N)
-    init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider, refine=refine)
+    init = _initial_state(fe, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider,
+                          refine=refine, q_t=s_t2)  # fmt: skip
     p_turn = np.zeros((B, n, 3))
     mu_turn = np.zeros((B, n, 3, 3))
     S_turn = np.zeros((B, n, 3, 3, 3))
@@ -172,7 +187,7 @@ def run_filter(
                 r["P"], r["nis"], r["nis_dof"], r["diverged"], r["flips"], consider,
                 sel(fe.R_GT), np.nan_to_num(sel(fe.cov_frame)), sel(p_turn), sel(mu_turn),
                 sel(S_turn), refine, bool(tun.attitude_update), iter_var, tun.iterate_max,
-                float(tun.frame_error_dynamics_s),
+                float(tun.frame_error_dynamics_s), schmidt,
             )  # fmt: skip
             return r
         # the reference engine: each run folded through Hu's steps (base.fold)
@@ -196,6 +211,7 @@ def run_filter(
                 p_turn=p_turn[b : b + 1],
                 mu_turn=mu_turn[b : b + 1],
                 S_turn=S_turn[b : b + 1],
+                schmidt=schmidt,
             )
             f = fold(steps, t, p_every)
             r["x"][j], r["P"][j], r["nis"][j], r["nis_dof"][j] = f.x, f.P, f.nis, f.nis_dof
@@ -220,7 +236,7 @@ def run_filter(
         k_div = np.where(fin.any(axis=1), n - np.argmax(fin[:, ::-1], axis=1), 0)
         sub = _subset(fe, lost)
         re = _initial_state(sub, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider,
-                            refine=refine, not_before=k_div)  # fmt: skip
+                            refine=refine, not_before=k_div, q_t=s_t2)  # fmt: skip
         go = re.k0 >= 0
         if not go.any():
             break
@@ -305,15 +321,25 @@ class HuSteps:
     p_turn: Array
     mu_turn: Array
     S_turn: Array
+    schmidt: bool = False
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
-        """The start prepared by :func:`_initial_state`, at its epoch ``k0``."""
+        """The start prepared by :func:`_initial_state`, at its epoch ``k0``. With the frame
+        error as a consider parameter (``schmidt``) P has three more rows and columns, u's:
+        uncorrelated with the start's error (which is in the front end's frame), covariance
+        the frame's."""
         if k != self.k0:
             return None, StepInfo()
         N = self.fe.usable.shape[2]
-        memo = HuMemo(0, 0, np.full((N, 3), np.nan), self.fe.R_GT[0, k].copy(), 0)
+        memo = HuMemo(0, 0, np.full((N, 3), np.nan), self.fe.R_GT[0, k].copy(), k)
         t = float(self.fe.t[k])
-        return Belief(t, self.x0.copy(), self.P0.copy(), self.layout, memo), StepInfo()
+        P = self.P0.copy()
+        if self.schmidt:
+            d = self.layout.dim
+            P = np.zeros((d + 3, d + 3))
+            P[:d, :d] = self.P0
+            P[d:, d:] = np.nan_to_num(self.fe.cov_frame[0, k])
+        return Belief(t, self.x0.copy(), P, self.layout, memo), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
         """Hu 2024 eq. 36-39: F is block diagonal, rotation (9, state dependent) and
@@ -325,7 +351,19 @@ class HuSteps:
         x, P = belief.x[None].copy(), belief.P[None].copy()
         F = core_F(x[:, sw], x[:, sp], self.n_orbit, rotation_only=True)
         Qc = core_Qc(x[:, sp], self.s_r2, self.s_t2)[:, :9, :9]
-        if self.consider and tun.frame_error_dynamics_s > 0:  # the frame error's share
+        d = lay.dim
+        rot_rows = np.arange(9)
+        if self.schmidt:  # the frame error u: d(omega)/dt gains G u, u constant
+            Fa = np.zeros((1, 12, 12))
+            Fa[:, :9, :9] = F
+            # -G: u here is frame_jacobian's (T coordinates = exp([u x]) times T''s), the
+            # inverse rotation of frame_error_rate_jacobian's
+            Fa[:, 3:6, 9:12] = -frame_error_rate_jacobian(x[:, sw], x[:, sp])
+            Qa = np.zeros((1, 12, 12))
+            Qa[:, :9, :9] = Qc
+            F, Qc = Fa, Qa
+            rot_rows = np.concatenate([rot_rows, d + np.arange(3)])
+        elif self.consider and tun.frame_error_dynamics_s > 0:  # white: the frame error's share
             C = self.fe.cov_frame[:, belief.memo.k_used]
             Qc[:, 3:6, 3:6] += frame_error_Qc(x[:, sw], x[:, sp], C, tun.frame_error_dynamics_s)
         Phr, Qr = discretise(F, Qc, dt)
@@ -333,11 +371,12 @@ class HuSteps:
         q_new, w_new = propagate_rotation(x[:, sq], x[:, sw], x[:, sp], dt)
         x[:, sq], x[:, sw] = q_new, w_new
         x[:, srv] = x[:, srv] @ Pht.T
-        P[:, :9, :] = Phr @ P[:, :9, :]
+        rr = np.ix_(rot_rows, rot_rows)
+        P[:, rot_rows, :] = Phr @ P[:, rot_rows, :]
         P[:, 9:15, :] = Pht @ P[:, 9:15, :]
-        P[:, :, :9] = P[:, :, :9] @ np.swapaxes(Phr, -1, -2)
+        P[:, :, rot_rows] = P[:, :, rot_rows] @ np.swapaxes(Phr, -1, -2)
         P[:, :, 9:15] = P[:, :, 9:15] @ Pht.T
-        P[:, :9, :9] += Qr
+        P[(slice(None),) + rr] += Qr
         P[:, 9:15, 9:15] += Qt
         if tun.sigma_f2_m2_s > 0:
             sf = lay.err("features")
@@ -356,7 +395,17 @@ class HuSteps:
         votes, flips = np.array([m.votes]), np.array([m.flips])
         active, start = np.array([True]), np.array([started])
         if self.consider:
-            k_used[_reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)] = k
+            R_prev, C_prev = R_used.copy(), fe.cov_frame[:, m.k_used]
+            ok = _reframe(x, P, fe.R_GT[:, k], R_used, active, lay, f_first)
+            k_used[ok] = k
+            if self.schmidt and ok[0] and np.any(R_used != R_prev):
+                # re-solved: u's coordinates turned with the state (_turn_state), then the
+                # new frame's error follows the old one's (frame_error_transition)
+                F = np.swapaxes(R_used, -1, -2) @ R_prev
+                A = frame_error_transition(F @ C_prev @ np.swapaxes(F, -1, -2), fe.cov_frame[:, k])
+                d = lay.dim
+                P[:, :, d:] = P[:, :, d:] @ np.swapaxes(A, -1, -2)
+                P[:, d:, :] = A @ P[:, d:, :]
         if tun.dpacf_measurement == "frame":
             use_att = "frame" if self.use_dpacf and k % tun.frame_meas_every == 0 else False
         else:
@@ -405,6 +454,9 @@ class HuSteps:
                     nis_k = np.where(its, nis2, nis_k)
         if started or k % CONSTRAIN_EVERY == 0:
             x, P = constrain_inertia(x, P, lay, active, curvature=tun.constraint_curvature)
+        if self.schmidt:  # u is considered, never updated: its covariance is the frame's
+            d = lay.dim
+            P[:, d:, d:] = np.nan_to_num(fe.cov_frame[:, k_used])
         memo = HuMemo(int(votes[0]), int(flips[0]), f_first[0], R_used[0], int(k_used[0]))
         out = dataclasses.replace(belief, x=x[0], P=P[0], memo=memo)
         if _diverged(x, P, lay)[0]:
@@ -417,9 +469,11 @@ class HuSteps:
         if not self.consider:
             return belief.P
         ku = (np.array([0]), np.array([belief.memo.k_used]))
+        d = self.layout.dim
+        P_xu = belief.P[None, :d, d:] if self.schmidt else None
         return frame_consider_cov(
-            belief.x[None], belief.P[None], self.fe.cov_frame[ku], self.layout,
-            self.p_turn[ku], self.mu_turn[ku], self.S_turn[ku],
+            belief.x[None], belief.P[None, :d, :d], self.fe.cov_frame[ku], self.layout,
+            self.p_turn[ku], self.mu_turn[ku], self.S_turn[ku], P_xu=P_xu,
         )[0]  # fmt: skip
 
 

@@ -98,6 +98,7 @@ def frame_consider_cov(
     p_turn: Array | None = None,
     mu_turn: Array | None = None,
     S_turn: Array | None = None,
+    P_xu: Array | None = None,
 ) -> Array:
     """The covariance the filter reports with the 'consider' frame model (beyond the paper).
 
@@ -118,14 +119,57 @@ def frame_consider_cov(
     ``[u x]^2 f / 2``, is then many of the shape's sigmas. With ``p_turn`` (B, 3) and the
     frame error given each turn, ``mu_turn`` (B, 3, 3) and ``S_turn`` (B, 3, 3, 3), all three
     from ``frontends.inertia.branch_statistics``, the half turns of the frame are added,
-    :func:`branch_mixture_cov`."""
+    :func:`branch_mixture_cov`. With ``P_xu`` (B, d, 3), the filter's error's
+    cross-covariance with ``u`` (the frame error carried as a consider parameter,
+    ``frame_error_model: state``), the error ``eps + D(u)`` has the cross terms
+    ``Ju P_ux + P_xu Ju^T`` too (first order), also in the half turns' components. And
+    the filter's own error is turned by ``u`` too (:func:`turned_error_cov`)."""
     B = x.shape[0]
     C = np.nan_to_num(cov_frame)
+    Pown = P
+    if P_xu is not None:
+        Ju = frame_jacobian(x, lay)
+        X = Ju @ np.swapaxes(P_xu, -1, -2)
+        P = P + X + np.swapaxes(X, -1, -2)
+    P = P + turned_error_cov(Pown, C, lay)
     _, D2 = _turn_moments(x, np.zeros((B, 3)), C, lay)
     out = P + D2
     if p_turn is not None:
         assert mu_turn is not None and S_turn is not None  # the three come together
         out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay)
+    return out
+
+
+_GEN = rot.skew(np.eye(3))  # E_m = [e_m x]: [u x] = sum_m u_m E_m
+
+
+def turned_error_cov(P: Array, C: Array, lay: StateLayout) -> Array:
+    """(B, d, d): the second moment of the filter's own error turned by the frame error
+    (beyond the paper; 'consider' frame model, issue 18). Against the true principal frame
+    the filter's error ``eps`` (in its own frame) is turned too: the rate's and each
+    feature's by ``[u x] eps`` (``R(u) = I + [u x] + ...``), the attitude's by
+    ``[u x] eps / 2`` (the composition of two small rotations), while the position and
+    velocity (in L) and the ratios are not. With ``u ~ N(0, C)`` independent of ``eps ~
+    N(0, P)`` (their correlation enters only third moments), block ``(a, b)`` gains
+    ``s_a s_b E[[u x] P_ab [u x]^T] = s_a s_b sum_mn C_mn E_m P_ab E_n^T``. Negligible where
+    the frame is known to a fraction of a milliradian; with the frame 2-5 degrees off and
+    the mass centre known to 2 cm (hu_big12) it is a millimetre on every feature, which the
+    position does not share, while their sum, the features' position in L, is measured to
+    a fraction of it."""
+    N = (lay.nominal_dim - lay.nom("features").start) // 3
+    idx = np.concatenate(
+        [np.arange(lay.err("attitude").start, lay.err("attitude").stop),
+         np.arange(lay.err("rate").start, lay.err("rate").stop),
+         np.arange(lay.err("features").start, lay.err("features").stop)]
+    )  # fmt: skip
+    nb = 2 + N
+    sc = np.ones(nb)
+    sc[0] = 0.5
+    Pt = P[:, idx][:, :, idx].reshape(-1, nb, 3, nb, 3)
+    O = np.einsum("zmn,mik,zakbl,njl->zaibj", C, _GEN, Pt, _GEN)
+    O = O * sc[None, :, None, None, None] * sc[None, None, None, :, None]
+    out = np.zeros_like(P)
+    out[:, idx[:, None], idx[None, :]] = O.reshape(-1, 3 * nb, 3 * nb)
     return out
 
 
@@ -186,16 +230,40 @@ def _turn_state(x, P, b, F, lay, f_first=None):
     N = (lay.nominal_dim - lay.nom("features").start) // 3
     f = x[b, lay.nom("features")].reshape(len(b), N, 3)
     x[b, lay.nom("features")] = (f @ np.swapaxes(F, -1, -2)).reshape(len(b), -1)
-    J = np.tile(np.eye(lay.dim), (len(b), 1, 1))
+    D = P.shape[-1]  # lay.dim, + 3 with the frame error as a consider parameter (its
+    J = np.tile(np.eye(D), (len(b), 1, 1))  # coordinates turn with the frame's)
     for name in ("attitude", "rate"):
         sl = lay.err(name)
         J[:, sl, sl] = F
     sf0 = lay.err("features").start
     for i in range(N):
         J[:, sf0 + 3 * i : sf0 + 3 * i + 3, sf0 + 3 * i : sf0 + 3 * i + 3] = F
+    if D > lay.dim:
+        J[:, lay.dim :, lay.dim :] = F
     P[b] = J @ P[b] @ np.swapaxes(J, -1, -2)
     if f_first is not None:
         f_first[b] = f_first[b] @ np.swapaxes(F, -1, -2)
+
+
+def frame_error_transition(C_old: Array, C_new: Array) -> Array:
+    """``A`` (B,3,3) with ``Cov(u_new, u_old) = A C_old``: how the error of the front end's
+    re-solved frame follows the previous one's (both in the new frame's coordinates), for
+    the frame error carried as a consider parameter (``frame_error_model: state``; beyond
+    the paper). The frame is a growing least squares: for nested best linear unbiased
+    estimates the later error is the earlier one's regression, ``Cov(u_new, u_old) =
+    C_new``, so ``A = C_new C_old^-1``; where ``C_old - C_new`` is not positive
+    semi-definite (a new template, another noise model) that would not be a covariance,
+    and ``A = L_new L_old^-1`` (Cholesky factors: the whitened error kept) is used. Either
+    keeps the joint covariance positive semi-definite. Zero where ``C_old`` is not
+    positive definite."""
+    Lo, Ln = _chol3(np.nan_to_num(C_old)), _chol3(np.nan_to_num(C_new))
+    det_o = np.prod(np.diagonal(Lo, axis1=-2, axis2=-1), axis=-1)
+    ok = det_o > 0
+    Ci = np.linalg.inv(np.where(ok[:, None, None], np.nan_to_num(C_old), np.eye(3)))
+    Li = np.linalg.inv(np.where(ok[:, None, None], Lo, np.eye(3)))
+    nested = np.linalg.eigvalsh(np.nan_to_num(C_old - C_new))[:, 0] >= 0.0
+    A = np.where(nested[:, None, None], np.nan_to_num(C_new) @ Ci, Ln @ Li)
+    return np.where(ok[:, None, None], A, 0.0)
 
 
 def _reframe(x, P, R_GT, R_used, active, lay, f_first=None):

@@ -37,8 +37,34 @@ def _rotation_window(
     return j, R_LG, cw_stm(n_orbit, t[j] - t[j[0]])[:, :3, :]
 
 
+def force_deviation_cov(t: Array, n_orbit: float, q_t: float) -> Array:
+    """Covariance (m,3,m,3) of ``r(t_j) - Phi_CW(t_j - t_0) [r_0; v_0]`` at the times ``t``
+    (m,) under a white random acceleration of spectral density ``q_t`` (m^2/s^3 per axis,
+    the filter's sigma_t^2, Hu 2024 eq. 4-5): the deviation ``d`` from the Hill motion of
+    the window's first state, ``d(t_0) = 0``, ``Cov(d_j, d_j') = [Phi(t_j - t_j') P_j']_rr``
+    for ``t_j >= t_j'`` with ``P`` its covariance (``cw_discrete`` steps)."""
+    from tumblenav.dynamics.relative_orbit import cw_discrete, cw_stm
+
+    m = len(t)
+    P = np.zeros((m, 6, 6))
+    for j in range(1, m):
+        Phi, Qd = cw_discrete(n_orbit, q_t, float(t[j] - t[j - 1]))
+        P[j] = Phi @ P[j - 1] @ Phi.T + Qd
+    lag = np.maximum(t[:, None] - t[None, :], 0.0)
+    Phi_lag = cw_stm(n_orbit, lag.ravel()).reshape(m, m, 6, 6)
+    C = Phi_lag[..., :3, :] @ P[None, :, :, :3]  # (m,m,3,3), valid for t_j >= t_j'
+    low = (t[:, None] >= t[None, :])[..., None, None]
+    C = np.where(low, C, np.swapaxes(C, 0, 1).swapaxes(-1, -2))
+    return np.ascontiguousarray(np.transpose(C, (0, 2, 1, 3)))
+
+
 def mass_centre_from_rotation(
-    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
+    fe: stereo_points.PointsFrontEnd,
+    b: int,
+    k: int,
+    n_orbit: float,
+    window_s: float = 30.0,
+    q_t: float = 0.0,
 ) -> tuple[Array, Array] | None:
     """Batch least squares for the mass centre before the filter starts (beyond Hu 2024).
 
@@ -53,6 +79,9 @@ def mass_centre_from_rotation(
     triangulation covariance plus what the G attitude error ``cov_G`` does to it
     (``R_LG [(g_i - c) x] cov_G [(g_i - c) x]^T R_LG^T``, at the centroid, then at the first
     solution); the covariance is scaled by the reduced chi-square when that exceeds one.
+    With the random force the filter assumes (``q_t``, its sigma_t^2), the Hill motion is
+    not exact over the window: the covariance gains what the force does to the estimate
+    (:func:`force_deviation_cov`, as ``stereo_points.joint_features``' ``cov_dev``).
 
     Returns ``(c_G, cov_c_G)``, or None when the window holds too little rotation to tell
     ``c_G`` (its 1-sigma above 0.5 m).
@@ -86,15 +115,32 @@ def mass_centre_from_rotation(
         c = x[6:]
     res = d - (A @ x[:, None])[..., 0]
     chi2 = float(np.einsum("mi,mij,mj->", res, W, res))
-    dof = max(3 * len(d) - 9, 1)
-    cov_c = Ninv[6:, 6:] * max(1.0, chi2 / dof)
+    expect = float(max(3 * len(d) - 9, 1))
+    cov_x = Ninv
+    if q_t > 0:  # the force's deviation from the Hill motion, common to an epoch's points
+        Q = force_deviation_cov(fe.t[j], n_orbit, q_t)
+        S = np.zeros((len(j), 9, 3))
+        np.add.at(S, jj, AtW)
+        Wsum = np.zeros((len(j), 3, 3))
+        np.add.at(Wsum, jj, W)
+        S2 = np.transpose(S, (1, 0, 2)).reshape(9, -1)
+        SQS = S2 @ Q.reshape(S2.shape[1], -1) @ S2.T
+        cov_x = Ninv + Ninv @ SQS @ Ninv
+        Qd = np.einsum("jajb->jab", Q)
+        expect += float(np.einsum("jab,jba->", Wsum, Qd) - np.trace(Ninv @ SQS))
+    cov_c = cov_x[6:, 6:] * max(1.0, chi2 / max(expect, 1.0))
     if not np.all(np.isfinite(cov_c)) or np.sqrt(np.max(np.linalg.eigvalsh(cov_c))) > 0.5:
         return None
     return c, cov_c
 
 
 def features_from_rotation(
-    fe: stereo_points.PointsFrontEnd, b: int, k: int, n_orbit: float, window_s: float = 30.0
+    fe: stereo_points.PointsFrontEnd,
+    b: int,
+    k: int,
+    n_orbit: float,
+    window_s: float = 30.0,
+    q_t: float = 0.0,
 ) -> tuple[Array, Array, NDArray[np.bool_]] | None:
     """Joint batch least squares for the features about the mass centre (beyond Hu 2024).
 
@@ -108,8 +154,8 @@ def features_from_rotation(
     errors do not enter, and the features come out refined over the views (their depth error
     averaged over the tumble) with an honest joint covariance.
 
-    The window and the weights are those of :func:`mass_centre_from_rotation` (the lever arm
-    of the G attitude error is ``f_i``). Returns ``(f_G, cov_f, fitted)``: ``f_G`` (N,3) and
+    The window, the weights and the random force ``q_t`` are those of
+    :func:`mass_centre_from_rotation` (the lever arm of the G attitude error is ``f_i``). Returns ``(f_G, cov_f, fitted)``: ``f_G`` (N,3) and
     ``cov_f`` (3N,3N) in G, for the features seen in the window (``fitted``); or None when
     the mass centre is not determined (the 1-sigma of the features' common shift above
     0.5 m: too little rotation in the window) or too few points.
@@ -129,6 +175,8 @@ def features_from_rotation(
         fe.cov_G[b, j],
         fe.usable[b, j] & kn[None, :],
         g - np.nanmean(g[kn], axis=0),
+        cov_dev=force_deviation_cov(fe.t[j], n_orbit, q_t) if q_t > 0 else None,
+        free_attitudes=True,
     )
     if out is None:
         return None
@@ -211,6 +259,30 @@ def refine_start_pose(
     return qk, rk, np.linalg.inv(A)
 
 
+# variance per axis (m^2) of a feature taken from the template (one stereo sighting, or
+# one refinement) rather than fitted at the start: the features' own 1 cm
+TEMPLATE_VAR_M2 = 1e-4
+
+
+def pose_feature_sensitivity(
+    C6: Array, R_LT: Array, f: Array, cov: Array, use: NDArray[np.bool_]
+) -> Array:
+    """``G`` (6, 3N): how the refined start pose's error (:func:`refine_start_pose`, its
+    covariance ``C6``) follows the errors of the features ``f`` (N,3) it was fitted with.
+    At the fit, ``sum_i H_i^T W_i y_i = 0`` with ``y_i = H_i e_z + R_LT e_f,i + eps_i``
+    (``e`` truth minus estimate, ``H_i = [R_LT [f_i x], I]``, ``W_i = cov_i^-1``), so
+    ``e_z = -C6 sum_i H_i^T W_i (R_LT e_f,i + eps_i)``: ``G[:, i] = C6 H_i^T W_i R_LT``,
+    ``Cov(e_z) = C6 + G P_f G^T`` and ``Cov(e_z, e_f) = -G P_f`` (beyond the paper).
+    ``cov`` (M,3,3): the used points' covariances (``use`` (N,), M of them)."""
+    N = len(f)
+    G = np.zeros((6, 3 * N))
+    W = np.linalg.inv(cov)
+    for m, i in enumerate(np.flatnonzero(use)):
+        H = np.concatenate([R_LT @ rot.skew(f[i]), np.eye(3)], axis=1)  # (3, 6)
+        G[:, 3 * i : 3 * i + 3] = C6 @ H.T @ W[m] @ R_LT
+    return G
+
+
 def _initial_state(
     fe: stereo_points.PointsFrontEnd,
     tun: HuTuning,
@@ -220,6 +292,7 @@ def _initial_state(
     frame_in_P0: bool = True,
     refine: bool = False,
     not_before: NDArray[np.int64] | None = None,
+    q_t: float = 0.0,
 ) -> _Init:
     """The start of each run: its epoch ``k0`` (the first where the gates hold; with
     ``not_before`` (B,), no earlier than that: a re-initialisation after a run lost track,
@@ -264,20 +337,27 @@ def _initial_state(
         Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
         joint = None  # (f_G, cov_f, fitted) of features_from_rotation
         if tun.mass_centre_init == "rotation":
-            batch = mass_centre_from_rotation(fe, b, k, n_orbit)
+            batch = mass_centre_from_rotation(fe, b, k, n_orbit, q_t=q_t)
             if batch is not None:
                 gbar, cov_c = batch
                 floor = tun.p0_mass_centre_floor_m**2 * np.eye(3)
                 Sc = R_TG @ (cov_c + floor) @ R_TG.T
         elif tun.mass_centre_init == "joint":
-            joint = features_from_rotation(fe, b, k, n_orbit)
+            joint = features_from_rotation(fe, b, k, n_orbit, q_t=q_t)
             if joint is not None:
                 fit_kn = joint[2] & kn
                 gbar = np.mean(g[fit_kn] - joint[0][fit_kn], axis=0)  # mass centre in G
-                Sc = tun.p0_mass_centre_floor_m**2 * np.eye(3)  # common floor (in T)
         fG = np.nan_to_num(g - gbar)  # features about the mass centre, in G
+        F = None  # with the joint fit: the features' covariance (3N, 3N, in T)
         if joint is not None:
             fG = np.where(fit_kn[:, None], joint[0], fG)
+            # the fit's covariance (in T); features catalogued but seen at fewer than three
+            # of the window's epochs keep their template (1 cm), unseen ones the prior
+            fit3 = np.repeat(fit_kn, 3)
+            RT = np.kron(np.eye(N), R_TG)
+            F = RT @ np.where(fit3[:, None] & fit3[None], joint[1], 0.0) @ RT.T
+            var = np.where(fit_kn, 0.0, np.where(kn, TEMPLATE_VAR_M2, tun.p0_unseen_feature_m**2))
+            F += np.kron(np.diag(var), np.eye(3))
         f = np.where(kn[:, None], (R_TG @ fG.T).T, 0.0)
         # r such that the predicted features match the measured ones on average:
         # r = mean_i (p_L,i - R_LT f_i) over the visible, catalogued features (weighted)
@@ -286,18 +366,19 @@ def _initial_state(
         resid = np.nan_to_num(fe.p_L[b, k]) - f @ R_LT.T
         r0 = np.sum(wts[:, None] * resid, 0) / wts.sum()
         C6 = None  # covariance of (attitude, position) from the refined start
+        C6f = None  # ... and its cross-covariance with the features (6, 3N)
         if refine:
-            fit = refine_start_pose(
-                fe.p_L[b, k, use],
-                fe.cov_L[b, k, use] + 1e-4 * np.eye(3),  # + the features' own 1 cm (below)
-                f[use],
-                q,
-                r0,
-                _R_LI_at(fe, b, k),
-            )
+            # the points' covariances, plus the template's 1 cm where the features are not
+            # the joint fit's (whose own covariance enters below)
+            cov_fit = fe.cov_L[b, k, use] + (0.0 if F is not None else TEMPLATE_VAR_M2) * np.eye(3)
+            fit = refine_start_pose(fe.p_L[b, k, use], cov_fit, f[use], q, r0, _R_LI_at(fe, b, k))
             if fit is not None:
                 q, r0, C6 = fit
                 R_LT = _R_LI_at(fe, b, k) @ rot.quat_to_matrix(q).T
+                if F is not None:
+                    G6 = pose_feature_sensitivity(C6, R_LT, f, cov_fit, use)
+                    C6f = -G6 @ F
+                    C6 = C6 + G6 @ F @ G6.T
         w = R_TG @ fe.omega_G[b, k]
         # velocity: with mass_centre_init 'rotation' or 'joint', of the mass centre, by
         # differencing at k and k - h the point ``p_L,i - R_LG f_G,i`` (f_G,i = g_i - gbar,
@@ -352,30 +433,24 @@ def _initial_state(
         sr = lay.err("position")
         P[sr, sr] = R_LT @ Sc @ R_LT.T
         sf0 = lay.err("features").start
-        if joint is not None:
-            # features: the joint fit's covariance (in T) plus the common floor Sc and 1 cm
-            # each (as below); r0 = sum_i w_i (p_L,i - R_LT f_i) / sum w, so its error is
-            # -R_LT W f_err with W = [w_i I] / sum w
-            F = np.zeros((3 * N, 3 * N))
-            RT = np.kron(np.eye(N), R_TG)
-            F[:] = (
-                RT
-                @ np.where(
-                    np.repeat(fit_kn, 3)[:, None] & np.repeat(fit_kn, 3)[None], joint[1], 0.0
-                )
-                @ RT.T
-            )
-            kn3 = np.repeat(kn, 3)
-            F += np.where(kn3[:, None] & kn3[None], np.kron(np.ones((N, N)), Sc), 0.0)
-            F += np.kron(np.diag(np.where(kn, 1e-4, tun.p0_unseen_feature_m**2)), np.eye(3))
-            Wr = np.kron((wts / wts.sum())[None, :], np.eye(3))  # (3, 3N)
-            sfe = lay.err("features")
+        sa, sfe = lay.err("attitude"), lay.err("features")
+        if F is not None:
+            # features: the joint fit's covariance (in T); without the refined pose,
+            # r0 = sum_i w_i (p_L,i - R_LT f_i) / sum w, so its error is -R_LT W f_err with
+            # W = [w_i I] / sum w
             P[sfe, sfe] = F
-            P[sr, sr] = R_LT @ Wr @ F @ Wr.T @ R_LT.T
-            P[sr, sfe] = -R_LT @ Wr @ F
-            P[sfe, sr] = P[sr, sfe].T
-        if C6 is not None:
-            sa = lay.err("attitude")
+            if C6f is None:
+                Wr = np.kron((wts / wts.sum())[None, :], np.eye(3))  # (3, 3N)
+                P[sr, sr] = R_LT @ Wr @ F @ Wr.T @ R_LT.T
+                P[sr, sfe] = -R_LT @ Wr @ F
+                P[sfe, sr] = P[sr, sfe].T
+        if C6f is not None:  # the refined pose's error, correlated with the features'
+            assert C6 is not None  # C6f comes with C6
+            P[sa, sa], P[sr, sr] = C6[:3, :3], C6[3:, 3:]
+            P[sa, sfe], P[sr, sfe] = C6f[:3], C6f[3:]
+            P[sfe, sa], P[sfe, sr] = C6f[:3].T, C6f[3:].T
+            P[sa, sr], P[sr, sa] = C6[:3, 3:], C6[3:, :3]
+        elif C6 is not None:
             P[sr, sr] += C6[3:, 3:]
             P[sa, sr] = C6[:3, 3:]
             P[sr, sa] = C6[3:, :3]
@@ -389,7 +464,7 @@ def _initial_state(
                     if kn[j]:
                         sj = slice(sf0 + 3 * j, sf0 + 3 * j + 3)
                         P[si, sj] = Sc
-                P[si, si] = Sc + 1e-4 * np.eye(3)
+                P[si, si] = Sc + TEMPLATE_VAR_M2 * np.eye(3)
             else:
                 P[si, si] = tun.p0_unseen_feature_m**2 * np.eye(3)
         # The principal frame itself is uncertain (DPACF error, or unknown for the baseline):

@@ -111,9 +111,9 @@ def _rk4(x, dt):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _frame_error_qc(w, p, C, tau_max, out):
-    """``model.frame_error_Qc`` of one run into ``out`` (3, 3): ``G C G^T tau`` with
-    ``G = M(omega, p) [omega x] - [K(omega) x]``, ``tau = min(|omega| / |K|, tau_max)``."""
+def _frame_jac(w, p):
+    """``model.frame_error_rate_jacobian`` of one run: ``G = M(omega, p) [omega x] -
+    [K(omega) x]`` (3, 3)."""
     wx, wy, wz = w[0], w[1], w[2]
     K0, K1, K2 = p[0] * wy * wz, p[1] * wx * wz, p[2] * wx * wy
     M = np.zeros((3, 3))
@@ -129,6 +129,16 @@ def _frame_error_qc(w, p, C, tau_max, out):
     G[1, 2] += K0
     G[2, 0] += K1
     G[2, 1] -= K0
+    return G
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _frame_error_qc(w, p, C, tau_max, out):
+    """``model.frame_error_Qc`` of one run into ``out`` (3, 3): ``G C G^T tau`` with
+    ``G = M(omega, p) [omega x] - [K(omega) x]``, ``tau = min(|omega| / |K|, tau_max)``."""
+    wx, wy, wz = w[0], w[1], w[2]
+    K0, K1, K2 = p[0] * wy * wz, p[1] * wx * wz, p[2] * wx * wy
+    G = _frame_jac(w, p)
     k = math.sqrt(K0 * K0 + K1 * K1 + K2 * K2)
     wn = math.sqrt(wx * wx + wy * wy + wz * wz)
     tau = wn / k if k * tau_max > wn else tau_max
@@ -264,6 +274,145 @@ def _predict_cov(P, Phr, Qr, Pht, Qt):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
+def _frame_coupling(ws, G, dt, Gam):
+    """The rotation block's transition to the frame error u (``Gam`` (9, 3)): the upper
+    right block of the 4th-order series of ``exp([[F, E], [0, 0]] dt)``, ``E`` = G on the
+    rate rows (``discretise`` of the augmented F in ``filter.HuSteps.predict``), from the
+    powers of F in the workspace of :func:`_rotation_discrete` (called first)."""
+    F, A2, A3 = ws[0], ws[1], ws[2]
+    dt2, dt3, dt4 = dt * dt, dt * dt * dt, dt * dt * dt * dt
+    for i in range(9):
+        for c in range(3):
+            s = 0.0
+            for m in range(3):
+                coef = (
+                    (dt if i == 3 + m else 0.0)
+                    + F[i, 3 + m] * dt2 / 2
+                    + A2[i, 3 + m] * dt3 / 6
+                    + A3[i, 3 + m] * dt4 / 24
+                )
+                s += coef * G[m, c]
+            Gam[i, c] = s
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _predict_cross(P, Gam, d):
+    """After :func:`_predict_cov` (which carries u's rows and columns unchanged), the
+    frame error's share of the transition: rows of the rotation block gain ``Gam P[u, :]``,
+    columns its transpose, the block itself ``Gam P_uu Gam^T`` (u at ``d .. d + 2``)."""
+    D = P.shape[0]
+    Pu = P[:, d : d + 3].copy()  # (D, 3): Phi P[:, u]
+    T1 = np.zeros((9, D))
+    for i in range(9):
+        for j in range(D):
+            T1[i, j] = Gam[i, 0] * Pu[j, 0] + Gam[i, 1] * Pu[j, 1] + Gam[i, 2] * Pu[j, 2]
+    for i in range(9):
+        for j in range(D):
+            P[i, j] += T1[i, j]
+    for i in range(D):
+        for j in range(9):
+            P[i, j] += T1[j, i]
+    GP = _mm(Gam, Pu[d : d + 3].copy())  # Gam P_uu
+    for i in range(9):
+        for j in range(9):
+            P[i, j] += GP[i, 0] * Gam[j, 0] + GP[i, 1] * Gam[j, 1] + GP[i, 2] * Gam[j, 2]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _frame_transition(Co, Cn, A):
+    """``frame.frame_error_transition`` of one run into ``A`` (3, 3)."""
+    Lo = np.zeros((3, 3))
+    Ln = np.zeros((3, 3))
+    _chol3(Co, Lo)
+    _chol3(Cn, Ln)
+    A[:, :] = 0.0
+    if not Lo[0, 0] * Lo[1, 1] * Lo[2, 2] > 0.0:
+        return
+    if np.linalg.eigvalsh(Co - Cn)[0] >= 0.0:
+        Ci = np.empty((3, 3))
+        _inv3(Co, Ci)
+        _mm_into(Cn, Ci, A)
+    else:
+        Li = np.empty((3, 3))
+        _inv3(Lo, Li)
+        _mm_into(Ln, Li, A)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _cross_terms(x, P, N, d, out):
+    """``out`` (d, d) = ``P[:d, :d] + Ju P_ux + P_xu Ju^T``: the filter's covariance with the
+    cross terms of its error and the frame error u (``frame.frame_consider_cov``'s
+    ``P_xu``), ``Ju`` = :func:`frame.frame_jacobian` (I on the attitude, ``-[omega x]`` on
+    the rate, ``-[f_i x]`` on each feature)."""
+    X = np.zeros((d, d))  # Ju P_ux
+    nb = 2 + N
+    Sk = np.zeros((3, 3))
+    for blk in range(nb):
+        if blk == 0:
+            o = _SA
+            Sk[:, :] = 0.0
+            Sk[0, 0] = Sk[1, 1] = Sk[2, 2] = 1.0
+        else:
+            o = _SW if blk == 1 else _SF + 3 * (blk - 2)
+            on = _NW if blk == 1 else _NF + 3 * (blk - 2)
+            vx, vy, vz = x[on], x[on + 1], x[on + 2]
+            Sk[0, 0], Sk[0, 1], Sk[0, 2] = 0.0, vz, -vy  # -[v x]
+            Sk[1, 0], Sk[1, 1], Sk[1, 2] = -vz, 0.0, vx
+            Sk[2, 0], Sk[2, 1], Sk[2, 2] = vy, -vx, 0.0
+        for a in range(3):
+            for j in range(d):
+                X[o + a, j] = Sk[a, 0] * P[d, j] + Sk[a, 1] * P[d + 1, j] + Sk[a, 2] * P[d + 2, j]
+    for i in range(d):
+        for j in range(d):
+            out[i, j] = P[i, j] + X[i, j] + X[j, i]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _turned_error(P, C, N, out):
+    """``frame.turned_error_cov`` of one run, added to ``out`` (d, d): block ``(a, b)`` of
+    the turned blocks (attitude with 1/2, rate, features) gains ``s_a s_b sum_mn C_mn E_m
+    P_ab E_n^T``, ``E_m = [e_m x]``, P the filter's own covariance."""
+    nb = 2 + N
+    offs = np.empty(nb, dtype=np.int64)
+    sc = np.ones(nb)
+    offs[0] = _SA
+    sc[0] = 0.5
+    for blk in range(1, nb):
+        offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
+    E = np.zeros((3, 3, 3))  # E[m] = [e_m x]
+    E[0, 1, 2], E[0, 2, 1] = -1.0, 1.0
+    E[1, 0, 2], E[1, 2, 0] = 1.0, -1.0
+    E[2, 0, 1], E[2, 1, 0] = -1.0, 1.0
+    T = np.empty((3, 3))
+    for ba in range(nb):
+        oa = offs[ba]
+        for bb in range(nb):
+            ob = offs[bb]
+            w = sc[ba] * sc[bb]
+            for i in range(3):
+                for j in range(3):
+                    T[i, j] = 0.0
+            for m in range(3):
+                for n_ in range(3):
+                    c = C[m, n_]
+                    if c == 0.0:
+                        continue
+                    for i in range(3):
+                        for j in range(3):
+                            acc = 0.0
+                            for k in range(3):
+                                em = E[m, i, k]
+                                if em == 0.0:
+                                    continue
+                                for l in range(3):
+                                    acc += em * P[oa + k, ob + l] * E[n_, j, l]
+                            T[i, j] += c * acc
+            for i in range(3):
+                for j in range(3):
+                    out[oa + i, ob + j] += w * T[i, j]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _absorb(P, dx, HP, S, nu):
     """One 3-row block of the sequential update (Hu 2024 eq. 40-42, Joseph form evaluated
     as P - (HP)^T S^-1 (HP) for the optimal gain); returns the block's NIS."""
@@ -368,7 +517,7 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
             s = 0.5 * (P[i, j] + P[j, i])
             P[i, j] = s
             P[j, i] = s
-    _boxplus(x, dx)
+    _boxplus(x, dx[: x.shape[0] - _SHIFT])  # P may carry consider parameters after the state
     return nis, dof
 
 
@@ -387,7 +536,7 @@ def _constrain(x, P, curvature):
     dx = np.empty(d)
     for i in range(d):
         dx[i] = -PH[i] / s * c
-    _boxplus(x, dx)
+    _boxplus(x, dx[: x.shape[0] - _SHIFT])
     for i in range(d):
         for j in range(d):
             P[i, j] -= PH[i] / s * PH[j]
@@ -470,6 +619,8 @@ def _follow_branch(x, P, q_meas, N, flips, qflips, votes, need, f_first):
         sg[_SW + a] = fa
         for i in range(N):
             sg[_SF + 3 * i + a] = fa
+        if P.shape[0] > _SF + 3 * N:  # the frame error's coordinates turn too
+            sg[_SF + 3 * N + a] = fa
     q = x[_NQ : _NQ + 4].copy()
     quat_multiply(qflips[which], q, x[_NQ : _NQ + 4])
     for a in range(3):
@@ -510,6 +661,8 @@ def _turn(x, P, F, N, f_first):
         for a in range(3):
             v[a] = F[a, 0] * f_first[i, 0] + F[a, 1] * f_first[i, 1] + F[a, 2] * f_first[i, 2]
         f_first[i] = v
+    if d > _SF + 3 * N:  # the frame error as a consider parameter: its coordinates too
+        nb += 1
     W = np.empty((3, d))
     for blk in range(nb):  # rows: P[blk, :] <- F P[blk, :]
         o = _SA if blk == 0 else (_SW if blk == 1 else _SF + 3 * (blk - 2))
@@ -699,6 +852,7 @@ def run_filter_kernel(
     iter_var,
     iter_max,
     frame_tau,
+    schmidt,
 ):
     """All B runs, one after the other. Arrays as in ``run_filter`` (leading run axis);
     ``R0`` (B,n,3,3) is the attitude measurement covariance (inflation applied); ``out_x``
@@ -715,12 +869,20 @@ def run_filter_kernel(
     prior attitude's variance (trace) exceeds it, the update is iterated ``iter_max`` more
     times (relinearised at the last posterior; 0: never). ``frame_tau``: with ``consider``,
     the frame error's share of the rate noise (``model.frame_error_Qc``) with this largest
-    correlation time (s; 0: none)."""
+    correlation time (s; 0: none). ``schmidt``: with ``consider`` and ``frame_tau`` > 0, the
+    frame error is a consider parameter instead (``frame_error_model: state``): P carries
+    its three rows and columns after the state's, coupled through ``G``
+    (:func:`_frame_coupling`), carried across the frame's solutions
+    (:func:`_frame_transition`), its own block held at the frame's covariance."""
     B, n, N = usable.shape[0], usable.shape[1], usable.shape[2]
     d = P0.shape[1]
+    schmidt = schmidt and consider and frame_tau > 0.0
+    D = d + 3 if schmidt else d
+    Gam = np.zeros((9, 3))
+    A = np.zeros((3, 3))
     for b in range(B):
         x = neutral.copy()
-        P = np.eye(d)
+        P = np.eye(D)
         active = False
         votes = 0
         f_first = np.full((N, 3), np.nan)
@@ -733,9 +895,14 @@ def run_filter_kernel(
         for k in range(n):
             if k > 0 and active:
                 dt = t[k] - t[k - 1]
-                if consider and frame_tau > 0.0:  # the frame error's share of the rate noise
+                G = np.zeros((3, 3))
+                if schmidt:  # the frame error as a consider parameter: d omega/dt -= G u
+                    G = -_frame_jac(x[_NW : _NW + 3], x[_NP : _NP + 3])  # (filter.HuSteps)
+                elif consider and frame_tau > 0.0:  # white: its share of the rate noise
                     _frame_error_qc(x[_NW : _NW + 3], x[_NP : _NP + 3], C_used, frame_tau, Qf)
                 Phr, Qr = _rotation_discrete(x[_NW : _NW + 3], x[_NP : _NP + 3], s_r2, dt, ws, Qf)
+                if schmidt:
+                    _frame_coupling(ws, G, dt, Gam)
                 _rk4(x, dt)
                 rv = x[_NR : _NR + 6].copy()
                 for i in range(6):
@@ -744,22 +911,42 @@ def run_filter_kernel(
                         s += Pht[i, m] * rv[m]
                     x[_NR + i] = s
                 _predict_cov(P, Phr, Qr, Pht, Qt)
+                if schmidt:
+                    _predict_cross(P, Gam, d)
                 if q_feat > 0.0:  # features' random walk (uniform grid: one dt)
                     for i in range(_SF, d):
                         P[i, i] += q_feat
             start = k == k0[b] and not diverged[b]
             if start:
                 x[:] = x0[b]
-                P[:, :] = P0[b]
+                P[:, :] = 0.0
+                P[:d, :d] = P0[b]
                 active = True
             if active and consider and np.all(np.isfinite(R_GT[b, k])):
-                C_used[:, :] = cov_frame[b, k]
-                k_used = k
                 if start:
                     R_used[:, :] = R_GT[b, k]
+                    if schmidt:
+                        P[d:, d:] = cov_frame[b, k]
                 elif np.any(R_GT[b, k] != R_used):  # re-solved: F = R_T'G R_GT
-                    _turn(x, P, _mm(R_GT[b, k].T.copy(), R_used), N, f_first)
+                    Ft = _mm(R_GT[b, k].T.copy(), R_used)
+                    _turn(x, P, Ft, N, f_first)
                     R_used[:, :] = R_GT[b, k]
+                    if schmidt:  # the new frame's error follows the old one's
+                        _frame_transition(_mm(_mm(Ft, C_used), Ft.T.copy()), cov_frame[b, k], A)
+                        Pu = P[:, d:].copy()
+                        for i in range(D):
+                            for a in range(3):
+                                P[i, d + a] = (
+                                    A[a, 0] * Pu[i, 0] + A[a, 1] * Pu[i, 1] + A[a, 2] * Pu[i, 2]
+                                )
+                        Pu = P[d:, :].copy()
+                        for a in range(3):
+                            for j in range(D):
+                                P[d + a, j] = (
+                                    A[a, 0] * Pu[0, j] + A[a, 1] * Pu[1, j] + A[a, 2] * Pu[2, j]
+                                )
+                C_used[:, :] = cov_frame[b, k]
+                k_used = k
             if active:
                 upd = not (start and skip_start)  # a refined start used its epoch already
                 use_att = use_dpacf and (k % att_every == 0)
@@ -805,11 +992,13 @@ def run_filter_kernel(
                         )  # fmt: skip
                 if start or k % constrain_every == 0:
                     _constrain(x, P, curvature)
+                if schmidt:  # u is considered, never updated: its covariance is the frame's
+                    P[d:, d:] = C_used
                 if _diverged(x, P, N, max_rate):  # a run that blew up is stopped and counted
                     diverged[b] = True
                     active = False
                     x[:] = neutral
-                    P[:, :] = np.eye(d)
+                    P[:, :] = np.eye(D)
                 if active:
                     nis_dof[b, k] = dof_k
                     if dof_k > 0:
@@ -817,8 +1006,14 @@ def run_filter_kernel(
             report = active and k % p_every == 0
             if report:
                 if consider:
+                    Px = np.empty((d, d))
+                    if schmidt:  # the cross terms with u (frame.frame_consider_cov's P_xu)
+                        _cross_terms(x, P, N, d, Px)
+                    else:
+                        Px[:, :] = P
+                    _turned_error(P, C_used, N, Px)  # the filter's own error turned by u
                     _consider_cov(
-                        x, P, C_used, p_turn[b, k_used], mu_turn[b, k_used], S_turn[b, k_used],
+                        x, Px, C_used, p_turn[b, k_used], mu_turn[b, k_used], S_turn[b, k_used],
                         flips, N, P_rep,
                     )  # fmt: skip
                 else:

@@ -95,12 +95,18 @@ def frame_error_rate_jacobian(w: Array, p: Array) -> Array:
     filter's state is in (the DPACF frame T') and the true principal frame T changes the
     angular acceleration that the Euler equations give in T' (beyond the paper).
 
-    ``u`` as in :func:`tumblenav.estimators.hu2024.frame.frame_jacobian` (coordinates in T'
-    are ``R`` times those in T, ``R = exp([u x])``): in T' the true inertia is ``R I R^T``,
+    Here the coordinates in T' are ``R`` times those in T, ``R = exp([u x])``: in T' the
+    true inertia is ``R I R^T``,
     not diagonal, and ``omega' = R K(R^T omega, p)`` (``K`` Hu 2024 eq. 21, the truth's
     ratios) rather than the filter's ``K(omega, p)``. To first order in u (``R = I + [u x]``):
     ``omega' = K(omega) + [u x] K(omega) - M(omega, p) [u x] omega``, i.e.
-    ``G = M(omega, p) [omega x] - [K(omega) x]`` with ``M = dK/domega`` (eq. 30)."""
+    ``G = M(omega, p) [omega x] - [K(omega) x]`` with ``M = dK/domega`` (eq. 30).
+
+    Sign: the consider model's ``u`` (:func:`tumblenav.estimators.hu2024.frame.frame_jacobian`
+    and ``frame_consider_cov``: the truth's coordinates are ``exp([u x])`` times the filter
+    frame's) is the inverse rotation of this one, so the rate error there gains ``-G u``
+    (``frame_error_model: state``; tested by finite differences). The white model
+    (:func:`frame_error_Qc`) does not depend on the sign."""
     M = core_F(w, p, 0.0, rotation_only=True)[..., 3:6, 3:6]
     return M @ rot.skew(w) - rot.skew(euler_ratios_rhs(w, p))
 
@@ -269,7 +275,7 @@ def constrain_inertia(
     PH = (P[:, :, ep] @ g[..., None])[..., 0]  # P H^T, H nonzero on the p block only
     s = np.sum(g * PH[:, ep], axis=1) + r
     K = PH / s[:, None]
-    x = lay.boxplus(x, -K * c[:, None])
+    x = lay.boxplus(x, (-K * c[:, None])[:, : lay.dim])  # P may carry consider parameters
     P = P - K[:, :, None] * PH[:, None, :]
     clip = np.clip(x[:, sp], -0.999, 0.999)
     x[:, sp] = clip if active is None else np.where(active[:, None], clip, x[:, sp])

@@ -122,10 +122,12 @@ class HuTuning(BaseModel):
         description="1-sigma per axis added to the batch mass centre's covariance "
         "(mass_centre_init 'rotation': its least-squares covariance misses the template "
         "and G-attitude errors; measured errors per axis 3-14 mm rms, "
-        "benchmarks/hu2024_mass_centre.py) and, with 'joint', to the features' common "
-        "shift (the joint fit takes the G-attitude errors as white: median NEES/dof of the "
-        "common shift 1.85 in a slow tumble, 0.07 rad/s, benchmarks/hu2024_mass_centre.py "
-        "--scenario docs/results/scenarios/generalisation/g_slowrecede.yaml)",
+        "benchmarks/hu2024_mass_centre.py). Not with 'joint' (since issue 18): its fit "
+        "takes every epoch's attitude as an unknown and the filter's random force over "
+        "its window into account, so its covariance is the features' own (common shift "
+        "NEES/dof 0.6-1.3 at the start on hu2024 and the consistency/hu_* scenarios; "
+        "with the attitudes as measured the shape's was 2.5, and this floor and 1 cm per "
+        "feature made the features conservative by 100x)",
     )
     dpacf_frame_error: Literal["consider", "white"] = Field(
         "consider",
@@ -176,11 +178,25 @@ class HuTuning(BaseModel):
         60.0,
         ge=0,
         description="with dpacf_frame_error 'consider': the DPACF frame's error also enters "
-        "the rate dynamics, as process noise G cov_frame G^T tau (G = d(Euler)/d(frame), "
-        "model.frame_error_Qc; tau the polhode's time |omega| / |K(omega)|, at most this "
-        "many seconds; beyond the paper): in a frame up to max_dpacf_sigma_rad off the "
-        "diagonal inertia model is wrong by G u, which the filter otherwise fits with its "
-        "ratios, growing over-confident (issue 18, hu_occ30). 0: off",
+        "the rate dynamics (beyond the paper): in a frame up to max_dpacf_sigma_rad off the "
+        "diagonal inertia model is wrong by G u (G = d(Euler)/d(frame)), which the filter "
+        "otherwise fits with its ratios, growing over-confident (issue 18, hu_occ30); how: "
+        "frame_error_model. With 'white', the process noise G cov_frame G^T tau "
+        "(model.frame_error_Qc; tau the polhode's time |omega| / |K(omega)|, at most this "
+        "many seconds). 0: off",
+    )
+    frame_error_model: Literal["state", "white"] = Field(
+        "state",
+        description="with frame_error_dynamics_s > 0, how the DPACF frame's error u enters "
+        "the rate dynamics: 'state': as a consider (Schmidt) parameter of the filter, "
+        "u ~ N(0, cov_frame) constant while a frame is held, its cross-covariance with the "
+        "state propagated through G (model.frame_error_rate_jacobian) and updated, u itself "
+        "never, carried from one solution of the frame to the next as the errors of a "
+        "growing least squares are (frame.frame_error_transition), and the cross terms in "
+        "the reported covariance (beyond the paper, issue 18: the filter's error is "
+        "correlated with u, which the white model misses: attitude, rate and ratios "
+        "conservative, features' common rotation too); 'white': the process noise G "
+        "cov_frame G^T tau (model.frame_error_Qc)",
     )
 
     frontend: StereoPointsTuning = Field(

@@ -160,7 +160,7 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active, f_lin=N
     u = fe.usable[:, k] & active[:, None]
     nu_f = np.where(u[..., None], np.nan_to_num(fe.p_L[:, k]) - y_hat, 0.0)
     covL = np.nan_to_num(fe.cov_L[:, k])
-    dx = np.zeros((B, lay.dim))
+    dx = np.zeros((B, P.shape[-1]))  # P may carry consider parameters after the state
     nis = np.zeros(B)
     eye3 = np.eye(3)
 
@@ -183,7 +183,7 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active, f_lin=N
         nu0 = rot.log_map(R_meas @ np.swapaxes(R_hat, -1, -2))
         if x_lin is not None:  # + H delta (R_hat and J at x_lin's features)
             nu0 = nu0 + np.einsum("bnij,bnj->bi", J, dlf)
-        HP = np.zeros((B, 3, lay.dim))
+        HP = np.zeros((B, 3, P.shape[-1]))
         Hdx = np.zeros((B, 3))
         for i in range(N):
             fi = slice(sf0 + 3 * i, sf0 + 3 * i + 3)
@@ -211,7 +211,7 @@ def _update_sequential(x, P, fe, k, lay, use_att, att_inflation, active, f_lin=N
         absorb(HP, S, nu_f[:, i] - Hdx, u[:, i])
     P = 0.5 * (P + np.swapaxes(P, -1, -2))
     dof = 3 * (ok0.astype(int) + u.sum(axis=1))
-    return lay.boxplus(x, dx), P, nis, dof, np.zeros(B, dtype=np.int64)
+    return lay.boxplus(x, dx[:, : lay.dim]), P, nis, dof, np.zeros(B, dtype=np.int64)
 
 
 def _feature_cols(HPf_cols: Array, R_LT: Array, B: int, m: int, N: int) -> Array:

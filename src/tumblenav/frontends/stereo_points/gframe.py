@@ -219,6 +219,8 @@ def joint_features(
     use: NDArray[np.bool_],
     f0: Array,
     passes: int = 2,
+    cov_dev: Array | None = None,
+    free_attitudes: bool = False,
 ) -> tuple[Array, Array, Array, NDArray[np.int64]] | None:
     """Batch least squares for a rigid body's features about its mass centre, from m epochs
     of points ``p`` (m,N,3) in a frame L, covariances ``cov`` (m,N,3,3), the measured
@@ -236,6 +238,22 @@ def joint_features(
     covariance is scaled by the reduced chi-square when that exceeds one (beyond Hu 2024,
     which takes the features from one stereo sighting).
 
+    ``cov_dev`` (m,3,m,3): the covariance of the translation model's error at the epochs,
+    ``r(j) - Phi[j] a`` (what a random force does to the Hill motion over the window, common
+    to every point of an epoch and correlated between epochs). The estimate stays the one
+    above; its covariance gains what that error does to it, ``N^-1 S Q S^T N^-1`` with
+    ``S = sum_i A_ij^T W_ij`` per epoch, and the reduced chi-square is taken against the
+    residuals' expectation with it (beyond Hu 2024: a fit that takes the Hill motion as
+    exact over 30 s while a force of 1e-9 m^2/s^3 moves the mass centre by 3 mm reported
+    the features' common shift to 0.3 mm, issue 18).
+
+    ``free_attitudes``: each epoch's attitude is an unknown too, ``R_LG(j) exp([psi_j x])``
+    (:func:`_joint_features_free`), rather than taken as measured with independent errors
+    ``cov_G``: the measured attitudes come from the same points and from the template,
+    whose errors are fixed in G and so correlated over the window; taken as independent
+    they made the features' shape over-confident (NEES/dof 2.5 at the filter's start on
+    hu2024 with small disturbances, 0.7-1.0 with the true G attitudes; issue 18).
+
     Uses the features seen (``use`` (m,N)) at 3 epochs or more. Returns the translation
     parameters ``a`` (K,), the features ``f`` (nf,3), their covariance (3nf,3nf) and their
     indices (nf,), or None (fewer than 3 such features or 12 points, singular)."""
@@ -248,6 +266,8 @@ def joint_features(
     nf = len(idx)
     dim = K + 3 * nf
     col = np.where(use, np.cumsum(fitted) - 1, -1).astype(np.int64)  # feature's block
+    if free_attitudes:
+        return _joint_features_free(Phi, R_LG, p, cov, cov_G, col, f0[idx], idx, passes, cov_dev)
     args = (
         np.ascontiguousarray(Phi, dtype=float),
         np.ascontiguousarray(R_LG, dtype=float),
@@ -258,6 +278,7 @@ def joint_features(
     )
     f = np.nan_to_num(f0[idx])
     for _ in range(passes):
+        lever = f  # the lever arms of this pass's weights
         # sums in a compiled loop (the numpy form made (M,3,3) temporaries: 4 ms per run)
         Nm, rhs, bb, cnt = _points_kernel.joint_normal_equations(*args, np.ascontiguousarray(f), nf)
         try:
@@ -270,7 +291,179 @@ def joint_features(
         f = x[K:].reshape(nf, 3)
     chi2 = bb - x @ rhs  # at the solution, in the last weights
     dof = max(3 * cnt - dim, 1)
-    cov_f = Ninv[K:, K:] * max(1.0, chi2 / dof)
+    cov_x = Ninv
+    expect = float(dof)
+    if cov_dev is not None:
+        S, Wsum = _epoch_sums(Phi, R_LG, cov, cov_G, col, lever, K, dim)
+        m = len(col)
+        Q = cov_dev.reshape(3 * m, 3 * m)
+        SQS = S @ Q @ S.T
+        cov_x = Ninv + Ninv @ SQS @ Ninv
+        # E[residual' W residual] with the error: tr(W Q) over the epochs less the fit's share
+        Qd = np.einsum("jajb->jab", cov_dev)
+        expect += float(np.einsum("jab,jba->", Wsum, Qd) - np.trace(Ninv @ SQS))
+    cov_f = cov_x[K:, K:] * max(1.0, chi2 / max(expect, 1.0))
     if not np.all(np.isfinite(cov_f)):
         return None
     return x[:K], f, cov_f, idx
+
+
+def _epoch_sums(
+    Phi: Array,
+    R_LG: Array,
+    cov: Array,
+    cov_G: Array,
+    col: NDArray[np.int64],
+    f: Array,
+    K: int,
+    dim: int,
+) -> tuple[Array, Array]:
+    """Per epoch j of :func:`joint_features`' rows: ``S[:, j] = sum_i A_ij^T W_ij`` (dim, m, 3,
+    returned as (dim, 3m)) and ``sum_i W_ij`` (m,3,3), with the weights of the lever arms
+    ``f`` (as ``_points_kernel.joint_normal_equations``, points whose covariance is not
+    positive definite left out)."""
+    m = len(col)
+    jj, ii = np.nonzero(col >= 0)
+    c = col[jj, ii]
+    lev = R_LG[jj] @ _skew(f[c])
+    C = np.nan_to_num(cov)[jj, ii] + lev @ np.nan_to_num(cov_G)[jj] @ np.swapaxes(lev, -1, -2)
+    ok = np.linalg.det(C) > 0
+    jj, c, C = jj[ok], c[ok], C[ok]
+    W = np.linalg.inv(C)
+    S = np.zeros((m, dim, 3))
+    PW = np.swapaxes(Phi[jj], -1, -2) @ W  # (M, K, 3)
+    for q in range(K):
+        np.add.at(S, (jj, q), PW[:, q])
+    RW = np.swapaxes(R_LG[jj], -1, -2) @ W
+    for a in range(3):
+        np.add.at(S, (jj, K + 3 * c + a), RW[:, a])
+    Wsum = np.zeros((m, 3, 3))
+    np.add.at(Wsum, jj, W)
+    return np.transpose(S, (1, 0, 2)).reshape(dim, 3 * m), Wsum
+
+
+def _joint_features_free(
+    Phi: Array,
+    R_LG: Array,
+    p: Array,
+    cov: Array,
+    cov_G: Array,
+    col: NDArray[np.int64],
+    f0: Array,
+    idx: NDArray[np.int64],
+    passes: int,
+    cov_dev: Array | None,
+) -> tuple[Array, Array, Array, NDArray[np.int64]] | None:
+    """:func:`joint_features` with every epoch's attitude an unknown (a bundle adjustment):
+    ``p_i(j) = Phi[j] a + R_LG(j) exp([psi_j x]) f_i``, Gauss-Newton from ``psi = 0`` and
+    ``f0`` (nf,3) over ``passes + 1`` linearisations, each epoch's ``psi_j`` eliminated by
+    its Schur complement (epochs with fewer than three points left out). Weights: the
+    points' covariances ``cov`` alone.
+
+    A common rotation of the features against every ``psi_j`` changes no prediction. It is
+    fixed by a prior on each ``psi_j`` of ``m`` times the measured attitude's covariance
+    ``cov_G`` (``m`` the epochs used): the features' common rotation then follows the
+    measured G attitudes (the G the least squares' inertia is in) to about one epoch's
+    attitude error, as correlated errors allow, and the epochs that see disjoint sets of
+    features (self-occlusion) stay tied. The covariance is the solution's, with the
+    translation model's error ``cov_dev`` and the reduced chi-square as in
+    :func:`joint_features`."""
+    m = len(col)
+    K = Phi.shape[2]
+    nf = len(f0)
+    dim = K + 3 * nf
+    have = (col >= 0).sum(axis=1) >= 3
+    col = np.where(have[:, None], col, -1)
+    jj, ii = np.nonzero(col >= 0)
+    c = col[jj, ii]
+    if len(jj) < 12 or len(np.unique(c)) < nf:
+        return None
+    C = np.nan_to_num(cov)[jj, ii]
+    if not np.all(np.linalg.det(C) > 0):
+        return None
+    W = np.linalg.inv(C)
+    y = np.nan_to_num(p)[jj, ii]
+    n_have = int(have.sum())
+    Pinv = np.zeros((m, 3, 3))  # the prior's information on each psi_j
+    CG = np.nan_to_num(cov_G[have]) * n_have
+    if not np.all(np.linalg.det(CG) > 0):
+        return None
+    Pinv[have] = np.linalg.inv(CG)
+    f = np.nan_to_num(f0).copy()
+    R = R_LG.copy()
+    a = np.zeros(K)
+    psi = np.zeros((m, 3))  # the attitudes' corrections so far
+    M = len(jj)
+    rows = np.arange(M)
+    for it in range(passes + 1):
+        fc = f[c]
+        Rj = R[jj]
+        Ax = np.zeros((M, 3, dim))
+        Ax[:, :, :K] = Phi[jj]
+        for q in range(3):  # the feature's block: R_LG(j)
+            Ax[rows, :, K + 3 * c + q] = Rj[:, :, q]
+        Ap = -Rj @ _skew(fc)  # d p / d psi_j
+        r = y - (Phi[jj] @ a) - (Rj @ fc[..., None])[..., 0]
+        AxW = np.swapaxes(Ax, -1, -2) @ W  # (M, dim, 3)
+        ApW = np.swapaxes(Ap, -1, -2) @ W  # (M, 3, 3)
+        Nxx = np.einsum("mia,mak->ik", AxW, Ax)
+        bx = np.einsum("mia,ma->i", AxW, r)
+        Nxp = np.zeros((m, dim, 3))
+        np.add.at(Nxp, jj, AxW @ Ap)
+        Npp = Pinv.copy()
+        np.add.at(Npp, jj, ApW @ Ap)
+        bp = -(Pinv @ psi[..., None])[..., 0]
+        np.add.at(bp, jj, (ApW @ r[..., None])[..., 0])
+        Npp[~have] = np.eye(3)
+        Nppi = np.linalg.inv(Npp)
+        Nppi[~have] = 0.0
+        XN = Nxp @ Nppi  # (m, dim, 3)
+        Nr = Nxx - np.einsum("jia,jka->ik", XN, Nxp)
+        br = bx - np.einsum("jia,ja->i", XN, bp)
+        try:
+            H = np.linalg.inv(Nr)
+        except np.linalg.LinAlgError:
+            return None
+        dx = H @ br
+        dpsi = (Nppi @ (bp - np.einsum("jia,i->ja", Nxp, dx))[..., None])[..., 0]
+        if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(dpsi))):
+            return None
+        a = a + dx[:K]
+        f = f + dx[K:].reshape(nf, 3)
+        if it < passes:
+            R = R @ _exp_so3(dpsi)
+            psi = psi + dpsi
+    # the residuals (linearised) and the fit's covariance at the last linearisation
+    r = r - np.einsum("mak,k->ma", Ax, dx) - (Ap @ dpsi[jj][..., None])[..., 0]
+    chi2 = float(np.einsum("ma,mab,mb->", r, W, r))
+    expect = float(max(3 * M - dim - 3 * n_have, 1))
+    cov_x = H
+    if cov_dev is not None:
+        Sx = np.zeros((m, dim, 3))
+        np.add.at(Sx, jj, AxW)
+        Sp = np.zeros((m, 3, 3))
+        np.add.at(Sp, jj, ApW)
+        Wsum = np.zeros((m, 3, 3))
+        np.add.at(Wsum, jj, W)
+        S = Sx - XN @ Sp  # what an epoch's common offset does to the reduced right side
+        S2 = np.transpose(S, (1, 0, 2)).reshape(dim, 3 * m)
+        SQS = S2 @ cov_dev.reshape(3 * m, 3 * m) @ S2.T
+        cov_x = H + H @ SQS @ H
+        Qd = np.einsum("jajb->jab", cov_dev)
+        absorbed = np.einsum("jae,jac,jcd,jde->", Sp, Nppi, Sp, Qd) + np.trace(H @ SQS)
+        expect += float(np.einsum("jab,jba->", Wsum, Qd) - absorbed)
+    cov_f = cov_x[K:, K:] * max(1.0, chi2 / max(expect, 1.0))
+    if not np.all(np.isfinite(cov_f)):
+        return None
+    return a, f, cov_f, idx
+
+
+def _exp_so3(v: Array) -> Array:
+    """Rotation matrices (…,3,3) ``exp([v x])`` (Rodrigues)."""
+    th = np.linalg.norm(v, axis=-1)[..., None, None]
+    K_ = _skew(v)
+    small = th < 1e-12
+    ths = np.where(small, 1.0, th)
+    A = np.where(small, 1.0, np.sin(ths) / ths)
+    B = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
+    return np.eye(3) + A * K_ + B * (K_ @ K_)
