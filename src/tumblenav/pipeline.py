@@ -234,10 +234,11 @@ def run_estimate(
 
     The estimator is checked against the scenario, and the measurements against both, before
     any work (InputError)."""
+    con = console or Console(stderr=True)
     scenario = load_scenario(scenario_ref)
     estimator = estimator or scenario.estimator.name
+    scenario = _own_tuning(scenario, estimator, con)
     est = est_base.get_for(estimator, scenario)
-    con = console or Console(stderr=True)
     ss = run_seed(scenario.montecarlo.seed if seed is None else seed, 0)
     if measurements is not None:
         meas, truth = _load_measurements(measurements, scenario)
@@ -332,6 +333,7 @@ def run_montecarlo(
     if seed is not None:
         scenario = scenario.with_updates(**{"montecarlo.seed": seed})
     estimator = estimator or scenario.estimator.name
+    scenario = _own_tuning(scenario, estimator, console or Console(stderr=True))
     runs = runs or scenario.montecarlo.runs
     summary = runner.run_campaign(  # checks the estimator against the scenario first
         scenario,
@@ -631,6 +633,24 @@ def _scenario_for(name: str, scenario: Scenario) -> Scenario:
                 first = first or exc
     assert first is not None
     raise first
+
+
+def _own_tuning(scenario: Scenario, name: str, con: Console) -> Scenario:
+    """The scenario's ``estimator.tuning`` is for its own estimator: another one named with
+    ``-e`` that does not take those settings runs with its defaults (said on the console)."""
+    other = _with_default_tuning(scenario, name)
+    if other is scenario:
+        return scenario
+    try:
+        est_base.get_for(name, scenario)
+        return scenario
+    except InputError:
+        est_base.get_for(name, other)  # a refusal that is not about the tuning stays
+        con.print(
+            f"note: the scenario's estimator.tuning is for {scenario.estimator.name}; "
+            f"{name} runs with its own defaults"
+        )
+        return other
 
 
 def _with_default_tuning(scenario: Scenario, name: str) -> Scenario:
