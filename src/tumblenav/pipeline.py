@@ -644,8 +644,11 @@ def _own_tuning(scenario: Scenario, name: str, con: Console) -> Scenario:
     try:
         est_base.get_for(name, scenario)
         return scenario
-    except InputError:
-        est_base.get_for(name, other)  # a refusal that is not about the tuning stays
+    except InputError as first:
+        try:
+            est_base.get_for(name, other)
+        except InputError:
+            raise first from None  # a refusal that is not about the tuning stays as it was
         con.print(
             f"note: the scenario's estimator.tuning is for {scenario.estimator.name}; "
             f"{name} runs with its own defaults"
