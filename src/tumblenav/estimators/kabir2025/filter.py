@@ -89,7 +89,12 @@ class _UKFModel:
         return X, off, rep
 
     def predict(
-        self, x: Array, P: Array, dt: float, coast: NDArray[np.bool_] | None = None
+        self,
+        x: Array,
+        P: Array,
+        dt: float,
+        coast: NDArray[np.bool_] | None = None,
+        rigid_fixed: NDArray[np.bool_] | None = None,
     ) -> tuple[Array, Array, NDArray[np.bool_]]:
         """Kabir 2025 eq. 13-15 for B runs over ``dt``; also the runs repaired.
 
@@ -100,6 +105,12 @@ class _UKFModel:
         weight (alpha = 0.1: W_0 ~ -99) extrapolates the curvature of hundreds of steps of
         uncorrected propagation, and drove the rate of ukf-mult to 1e4 deg/s through Kabir's
         1500-s occlusion (tumblenav default).
+
+        ``rigid_fixed`` (B,): runs predicting into an epoch whose update leaves the rigid
+        parameters alone (``consider`` in :meth:`update`): no process noise on them. Their Q
+        is a floor for what thousands of updates' linearisation errors do to them
+        (:func:`~.tuning.derive_tuning`); without an update the rigid body's inertia and
+        features do not move.
         """
         Wm = self.ut.Wm
         B = x.shape[0]
@@ -131,17 +142,38 @@ class _UKFModel:
             Dc = D[coast, 1:]
             Pc = np.swapaxes(Dc * Wm[1:, None], -1, -2) @ Dc
             P[coast] = Pc
-        P = P + self.Q
+        if rigid_fixed is not None and np.any(rigid_fixed):
+            o = 7 if self.additive else 6
+            Qr = np.broadcast_to(self.Q, P.shape).copy()
+            Qr[np.asarray(rigid_fixed, dtype=bool), o:, o:] = 0.0
+            P = P + Qr
+        else:
+            P = P + self.Q
         if not self.additive:  # a long occlusion is all predictions: hold the lost attitude
             P = _cap_attitude(P)
         return x, P, rep
 
     def update(
-        self, x: Array, P: Array, k: int, zk: Array, Rk: Array, rows: NDArray[np.bool_]
+        self,
+        x: Array,
+        P: Array,
+        k: int,
+        zk: Array,
+        Rk: Array,
+        rows: NDArray[np.bool_],
+        consider: NDArray[np.bool_] | None = None,
     ) -> tuple[Array, Array, Array, NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
         """Kabir 2025 eq. 22-25 for B runs with epoch ``k``'s measurements ``zk``, variances
         ``Rk`` (B, 9N) where ``rows``; returns x, P, NIS and its dof (B,), the rejected
-        features (B,) and the runs repaired."""
+        features (B,) and the runs repaired.
+
+        ``consider`` (B,): runs whose rigid parameters (inertia ratios and features) are
+        consider parameters in this update (Schmidt): their gain is zero, so they keep their
+        mean and covariance, while their cross-covariance with the rate and attitude is
+        updated as for any gain (``P - K Pxz^T - Pxz K^T + K S K^T``, i.e. only the rigid
+        block keeps its prior). ukf-gp uses it for its GP pseudo-measurements, which are
+        made from the same training data the filter already used for these parameters
+        (tumblenav addition)."""
         ut, geom, N = self.ut, self.geom, self.N
         B, M, d = x.shape[0], 9 * N, P.shape[-1]
         diag = np.arange(M)
@@ -170,7 +202,15 @@ class _UKFModel:
         sol = np.linalg.solve(S, np.concatenate([np.swapaxes(Pxz, 1, 2), nu[..., None]], 2))
         Kt, Sinv_nu = sol[..., :d], sol[..., d]
         dx = (Pxz @ Sinv_nu[..., None])[..., 0]
-        P = P - Pxz @ Kt
+        if consider is not None and np.any(consider):
+            # Schmidt update: K's rigid rows zero; P - K_c Pxz^T - Pxz K_c^T + K_c S K_c^T
+            # is P - (K S K^T) o (1 - c c^T) with K S K^T = Pxz Kt (c: the rigid components)
+            c = np.zeros((B, d), dtype=bool)
+            c[:, (7 if self.additive else 6) :] = np.asarray(consider, dtype=bool)[:, None]
+            dx = np.where(c, 0.0, dx)
+            P = P - (Pxz @ Kt) * (1.0 - (c[:, :, None] & c[:, None, :]))
+        else:
+            P = P - Pxz @ Kt
         P = 0.5 * (P + np.swapaxes(P, -1, -2))
         if self.additive:
             x = x + dx
@@ -201,11 +241,13 @@ def _filter(
     k0: Array | None = None,
     skip_first: Array | None = None,
     Q: Array | None = None,
+    consider: NDArray[np.bool_] | None = None,
 ) -> dict[str, Any]:
     """The batched engine: B filters at once, z, Rv (B, n, N, 9); x0 (B, nom); P0 (B, d, d)
     at each run's start epoch ``k0`` (B,) (default 0; ``skip_first``: no update at it, the
     start already holds that epoch's data); the same predict and update as
-    :class:`UKFSteps` (tested equal to its fold).
+    :class:`UKFSteps` (tested equal to its fold). ``consider`` (B, n): epochs whose updates
+    leave the rigid parameters as they are (:meth:`_UKFModel.update`).
 
     Returns x (B, n, nom), P (B, n, d, d) of the filter's own state, nis, nis_dof,
     rejected (B,), diverged_at (B,) epoch or -1, repairs (B,).
@@ -242,7 +284,8 @@ def _filter(
             x_prev, P_prev = x, P
             try:
                 if k > 0:
-                    x, P, rep = m.predict(x, P, t[k] - t[k - 1], coast)
+                    fixed = None if consider is None else np.asarray(consider)[:, k]
+                    x, P, rep = m.predict(x, P, t[k] - t[k - 1], coast, fixed)
                     repairs[rep & alive & (k > k0)] += 1
                 fresh = k0 == k
                 if fresh.any():  # runs starting now (before: placeholders, not reported)
@@ -252,7 +295,8 @@ def _filter(
                 rows = usable[:, k] & (alive & started & ~(fresh & skip_first))[:, None]
                 coast = ~rows.any(axis=1)
                 if rows.any():
-                    x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows)
+                    ck = None if consider is None else np.asarray(consider)[:, k]
+                    x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows, ck)
                     repairs[rep & alive] += 1
                     rejected += rej
                     nis[:, k] = nis_k
@@ -303,6 +347,7 @@ class UKFSteps:
     layout: StateLayout
     k0: int = 0
     skip_first: bool = False
+    consider: NDArray[np.bool_] | None = None  # (n,) epochs: _UKFModel.update's consider
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         if k != self.k0:
@@ -313,7 +358,13 @@ class UKFSteps:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             try:
                 coast = np.array([bool((belief.memo or {}).get("coast", False))])
-                x, P, rep = self.model.predict(belief.x[None], belief.P[None], t - belief.t, coast)
+                fixed = None
+                if self.consider is not None:
+                    k = min(int(np.searchsorted(self.t, t)), len(self.t) - 1)
+                    fixed = self.consider[k : k + 1]
+                x, P, rep = self.model.predict(
+                    belief.x[None], belief.P[None], t - belief.t, coast, fixed
+                )
             except np.linalg.LinAlgError:  # update() sees a non-finite state: diverged
                 x, P, rep = (
                     np.full((1,) + belief.x.shape, np.nan),
@@ -333,8 +384,9 @@ class UKFSteps:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             try:
                 if rows.any():
+                    ck = None if self.consider is None else self.consider[k : k + 1]
                     x, P, nis_k, dof_k, rej_k, rep = self.model.update(
-                        x, P, k, self.z[k][None], self.Rv[k][None], rows
+                        x, P, k, self.z[k][None], self.Rv[k][None], rows, ck
                     )
                     nis, dof, rej = float(nis_k[0]), int(dof_k[0]), int(rej_k[0])
                     repairs += int(rep[0])
@@ -451,6 +503,7 @@ def run_ukf(
     x0: Array | None = None,
     P0: Array | None = None,
     prepared: Prepared | None = None,
+    consider: NDArray[np.bool_] | None = None,
 ) -> EstimateHistory:
     """Kabir 2025's UKF (``variant='additive'``) or its multiplicative variant (``'mult'``)
     on prepared measurements.
@@ -480,6 +533,9 @@ def run_ukf(
         start's.
     prepared : Prepared, optional
         :func:`prepare`'s result, if already made (ukf-gp).
+    consider : (n,) bool array, optional
+        Epochs whose updates leave the inertia ratios and features as they are (consider
+        parameters, :meth:`_UKFModel.update`; ukf-gp's pseudo-measurements).
 
     Returns
     -------
@@ -517,6 +573,7 @@ def run_ukf(
         layout=_filter_layout(N, variant),
         k0=k0,
         skip_first=skip,
+        consider=None if consider is None else np.asarray(consider, dtype=bool),
     )
     r = fold(steps, t)
     stopped = np.flatnonzero(np.isfinite(r.x[:-1, 0]) & ~np.isfinite(r.x[1:, 0])) + 1
