@@ -10,14 +10,20 @@ as in :mod:`tumblenav.rotations`.
 Measurements (eq. 30-32 written in L): every rectangle recognised in a scan
 (:mod:`tumblenav.frontends.depth_pose`) gives the model attitude, i.e. ``q_TI`` (the model frame
 is parallel to T), and the model origin ``p_ML = r - R_LT b``; the four-fold symmetry of each
-rectangle is resolved against the filter's prediction (eq. 21-25). Their noise is taken from the
-scatter of the plane fit (first order: centroid ``sigma / sqrt(n)`` per axis; attitude
-``sigma / (sqrt(n) * side / sqrt(12))`` per axis), scaled by ``position_noise_scale`` and
-``attitude_noise_scale`` for the larger, scan-to-scan correlated errors of a real ray grid.
+rectangle is resolved against the filter's prediction (eq. 21-25). Yu 2019 gives the fixes no
+covariance; tumblenav's error model (:mod:`.fixes`) starts from the first-order scatter of the
+plane fit (eq. 3-5) and the ray grid's edge phase, and splits it into a white part (R, each
+component's variance scaled by a factor learnt from the innovations) and a slowly varying part
+carried as states (six Gauss-Markov states per model rectangle, decorrelating as the view
+turns, and a common bias along the line of sight): the fixes' errors against the truth are
+correlated from scan to scan (:mod:`.filter`). The estimate reports the 20 states above.
 
 Beyond Yu 2019: the inertia ratios that the motion does not excite (a spin about a principal
 axis) get a Schmidt (consider) update, so the EKF does not learn them from its own rate noise
-(:func:`unexcited_ratios`); docs/results/yu2019.md has the measurements behind both.
+(:func:`unexcited_ratios`); while the spin axis may stay put in T, the update gets no component
+along the offset and position moved together along it, which no fix sees
+(``consider_spin_axis_offset``); docs/results/yu2019.md and docs/results/consistency.md have
+the measurements behind these.
 """
 
 from __future__ import annotations
@@ -91,7 +97,7 @@ class DepthEKF:
             "reinitialised": 0,
             **r.skipped,
         }
-        restarts = list(r.memo[1]) if r.memo is not None else []
+        restarts = list(r.memo.restarts) if r.memo is not None else []
         n_scans = len(meas.t)
         # (said now, with the run's counts and times; kept in info["warnings"] without them,
         # so that a campaign's summary says each once with its number of runs)
@@ -126,10 +132,11 @@ class DepthEKF:
         }
         for detailed, generic in notes:
             warnings.warn(detailed + tails[generic], stacklevel=2)
+        # the estimate is LAYOUT's (the marginal): the fixes' slow errors stay inside
         return EstimateHistory(
             t=meas.t,
-            x=r.x,
-            P=r.P,
+            x=r.x[:, : LAYOUT.nominal_dim],
+            P=r.P[:, : LAYOUT.dim, : LAYOUT.dim],
             layout=LAYOUT,
             nis=r.nis,
             nis_dof=r.nis_dof,

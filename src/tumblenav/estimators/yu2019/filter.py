@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -16,11 +16,12 @@ from tumblenav.estimators.base import (
     StateLayout,
     StepInfo,
 )
-from tumblenav.estimators.yu2019.fixes import _only_model_symmetric, fix_covariance
+from tumblenav.estimators.yu2019.fixes import _only_model_symmetric, fix_noise
 from tumblenav.estimators.yu2019.model import (
     _E_ATT,
     _E_INERTIA,
     _E_OFFSET,
+    _E_POS,
     _E_RATE,
     _P0,
     _X_ATT,
@@ -28,8 +29,10 @@ from tumblenav.estimators.yu2019.model import (
     _X_POS,
     _X_RATE,
     LAYOUT,
+    SLOW_PER_RECTANGLE,
     _initial_inertia,
     _propagate,
+    filter_layout,
     measurement,
     physical_inertia,
     spin_axis_fixed,
@@ -47,6 +50,31 @@ Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
+class DepthMemo:
+    """What ekf-depth carries from step to step besides the mean and covariance.
+
+    ``gated_run``: epochs in a row whose every fix the NIS gate rejected; ``restarts``: the
+    times the run started again; ``clock``: the view clock (rad), how far the view of the
+    target has turned since the start (the estimated rate plus the orbit's, integrated);
+    ``last_seen``: each model rectangle's view clock at its last fix (-inf: never);
+    ``noise_shape``, ``noise_rate``: half the faded sums of the weights and weighted
+    samples of the fixes' variance scale per component (:data:`fixes.COMPONENTS`;
+    :meth:`DepthSteps._learn_noise`)."""
+
+    gated_run: int
+    restarts: tuple[float, ...]
+    clock: float
+    last_seen: tuple[float, ...]
+    noise_shape: tuple[float, ...]
+    noise_rate: tuple[float, ...]
+
+    @property
+    def noise_scales(self) -> Array:
+        """The fixes' variance scales per component, ``rate / shape`` (at least 1e-3)."""
+        return np.maximum(np.asarray(self.noise_rate) / np.asarray(self.noise_shape), 1e-3)
+
+
+@dataclass(frozen=True)
 class DepthSteps:
     """Yu 2019's EKF as stateless steps on one run's point clouds, folded by
     :func:`tumblenav.estimators.base.fold`: the plane front end turns each scan into pose
@@ -59,8 +87,20 @@ class DepthSteps:
     ``q_trans`` None: Yu's single Q). A run that has lost track (``reinit_after_gated``
     epochs in a row whose every fix the NIS gate rejects: a wrong start, or a wrong rectangle
     match it has followed) starts again from that epoch's fixes (tumblenav default), in the
-    symmetric frame of the model nearest its last estimate; the belief's ``memo`` carries
-    ``(gated epochs in a row, restart times)``."""
+    symmetric frame of the model nearest its last estimate.
+
+    Beyond Yu 2019 (tumblenav), the fixes' errors as measured against the truth (their
+    autocorrelation over scans, :func:`fixes.fix_noise`): the slowly varying part of each
+    rectangle's fix errors (the ray grid's edge phase, the errors of an oblique view) is a
+    state of the filter, six first-order Gauss-Markov states per model rectangle
+    (normalised to unit variance, seen in each fix through :meth:`FixNoise.slow_factor`),
+    which decorrelate as the view of the target turns, by ``exp(-turn /
+    decorrelation_rad)`` between two fixes of that rectangle, the turn counted by a view
+    clock (the estimated rate plus the orbit's, integrated); the fixes' common bias along the
+    line of sight is a random constant; R is the white part only, its variance per component
+    scaled by a factor learnt from the innovations (:meth:`_learn_noise`). The layout is
+    :func:`model.filter_layout`; the estimate reports LAYOUT. The belief's ``memo`` is a
+    :class:`DepthMemo`."""
 
     model: Any
     meas: Any
@@ -70,11 +110,46 @@ class DepthSteps:
     rng: np.random.Generator
     q_rot: float = 1e-12
     q_trans: float | None = None
-    layout: StateLayout = LAYOUT
 
     @functools.cached_property
     def symmetries(self) -> list[Array]:
         return model_symmetries(self.model.rectangles)
+
+    @functools.cached_property
+    def _rect_index(self) -> dict[str, int]:
+        return {r.name: i for i, r in enumerate(self.model.rectangles)}
+
+    @functools.cached_property
+    def _rects(self) -> dict[str, Any]:
+        return {r.name: r for r in self.model.rectangles}
+
+    @functools.cached_property
+    def _rect_centre(self) -> dict[str, Array]:
+        return {r.name: np.asarray(r.centre_M, dtype=float) for r in self.model.rectangles}
+
+    @functools.cached_property
+    def layout(self) -> StateLayout:
+        # without the multi-solution fix (the paper's Fig. 9) the symmetric jumps go through
+        # ungated: the fixes' error states would take them in, so there are none
+        gated = self.tun.multi_solution_fix
+        n = len(self.model.rectangles) if self.tun.fix_error_states and gated else 0
+        return filter_layout(n, self.tun.fix_range_bias_spacings > 0 and gated)
+
+    def _start_memo(self, previous: DepthMemo | None = None, t_restart: float = 0.0) -> DepthMemo:
+        """The memo of a start; of a restart at ``t_restart`` after ``previous`` (its view
+        clock and the learnt noise scales stay: they describe the sensor, not the track)."""
+        n = len(self.model.rectangles)
+        if previous is None:
+            a0 = self.tun.fix_noise_prior_fixes / 2.0
+            return DepthMemo(0, (), 0.0, (-np.inf,) * n, (a0,) * 6, (a0,) * 6)
+        return DepthMemo(
+            0,
+            (*previous.restarts, t_restart),
+            previous.clock,
+            (-np.inf,) * n,
+            previous.noise_shape,
+            previous.noise_rate,
+        )
 
     @functools.cached_property
     def _max_rate(self) -> float:
@@ -86,13 +161,6 @@ class DepthSteps:
         dt = np.diff(np.asarray(self.meas.t, dtype=float))
         dt = dt[dt > 0]
         return float(np.median(dt)) if len(dt) else np.inf
-
-    def _view_step(self, x: Array, P: Array) -> float:
-        """How far the view of the target turns between two scans (rad): the estimated
-        rate, with its uncertainty (a rate still unknown is not taken as zero), and the
-        orbit's turn of L, over one scan interval."""
-        w = float(np.sqrt(x[_X_RATE] @ x[_X_RATE] + np.trace(P[_E_RATE, _E_RATE])))
-        return (w + self.n_orbit) * self._scan_interval
 
     @functools.cached_property
     def _frames(self) -> tuple[Array, Array]:
@@ -137,15 +205,45 @@ class DepthSteps:
         if previous is not None:
             R_prev = rot.quat_to_matrix(previous[_X_ATT])
             R_TI = max((G @ R_TI for G in self.symmetries), key=lambda R: np.sum(R * R_prev))
-        x = np.zeros(LAYOUT.nominal_dim)
+        lay = self.layout
+        x = np.zeros(lay.nominal_dim)
         x[_X_ATT] = rot.matrix_to_quat(R_TI)
         x[_X_INERTIA] = _initial_inertia(self.tun, self.rng)
         x[_X_POS] = R_LS @ p0
-        return Belief(float(self.meas.t[k]), x, _P0(self.tun), LAYOUT, (0, ())), StepInfo()
+        P = np.eye(lay.dim)  # the fixes' slow errors: unit variance, none seen yet
+        P[: LAYOUT.dim, : LAYOUT.dim] = _P0(self.tun)
+        if "fix_range_bias" in lay.names():
+            # the common bias along the line of sight: a random constant, its 1-sigma
+            # fix_range_bias_spacings x the start's ray spacing (m)
+            h = np.median(
+                [np.sqrt(f.sides_m[0] * f.sides_m[1] / max(f.n_points, 3)) for f in fixes]
+            )
+            e = lay.err("fix_range_bias")
+            P[e, e] = (self.tun.fix_range_bias_spacings * h) ** 2
+        return Belief(float(self.meas.t[k]), x, P, lay, self._start_memo()), StepInfo()
 
     def predict(self, belief: Belief, t: float) -> Belief:
-        x, P = _propagate(belief.x, belief.P, t - belief.t, self.n_orbit, self.q_rot, self.q_trans)
-        return Belief(t, x, P, LAYOUT, belief.memo)
+        dt = t - belief.t
+        x, P = _propagate(belief.x, belief.P, dt, self.n_orbit, self.q_rot, self.q_trans)
+        # the view clock: how far the view of the target has turned (the estimated rate and
+        # the orbit's turn of L; tumblenav), the time base of the fixes' slow errors
+        m = belief.memo
+        turn = (float(np.linalg.norm(belief.x[_X_RATE])) + self.n_orbit) * abs(dt)
+        return Belief(t, x, P, belief.layout, replace(m, clock=m.clock + turn))
+
+    def _decay(self, x: Array, P: Array, j: int, turn: float, psi_c: float) -> None:
+        """Rectangle ``j``'s slow-error pair over a view turn ``turn`` (rad), in place: the
+        first-order Gauss-Markov step ``s' = a s + sqrt(1 - a^2) w``, ``a = exp(-turn /
+        psi_c)`` (tumblenav)."""
+        a = float(np.exp(-max(turn, 0.0) / max(psi_c, 1e-12)))
+        lay = self.layout
+        e0, x0 = lay.err("fix_errors").start, lay.nom("fix_errors").start
+        e = slice(e0 + SLOW_PER_RECTANGLE * j, e0 + SLOW_PER_RECTANGLE * (j + 1))
+        xs = slice(x0 + SLOW_PER_RECTANGLE * j, x0 + SLOW_PER_RECTANGLE * (j + 1))
+        x[xs] *= a
+        P[e, :] *= a
+        P[:, e] *= a
+        P[e, e] += (1.0 - a * a) * np.eye(SLOW_PER_RECTANGLE)
 
     def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
         """Each fix of epoch ``k`` (Yu 2019 eq. 34-41), gated by its NIS; the start epoch's
@@ -153,7 +251,11 @@ class DepthSteps:
         if started:
             return belief, StepInfo()
         tun = self.tun
-        x, P = belief.x, belief.P
+        lay = belief.layout
+        x, P = belief.x.copy(), belief.P.copy()
+        memo: DepthMemo = belief.memo
+        last = list(memo.last_seen)
+        shape, rate = np.array(memo.noise_shape), np.array(memo.noise_rate)
         fixes = self._fixes(k, x)
         skipped = {
             "no_rectangle": 0 if fixes else 1,
@@ -163,76 +265,165 @@ class DepthSteps:
         }
         R_CL, R_LI = self._frames
         R_LS = R_CL[k].T
-        nis, dof = 0.0, 0
+        thr = plane_threshold(tun, self.sigma)
+        names = lay.names()
+        slow_states = "fix_errors" in names
+        nis, dof, far = 0.0, 0, 0.0
+        # the scales are learnt, and the offset along a fixed spin axis constrained, behind
+        # the NIS gate only: without it (no multi-solution fix, the paper's Fig. 9) the
+        # symmetric jumps would be learnt as noise and would turn the spin axis
+        gated = tun.multi_solution_fix
+        learn = tun.fix_noise_adaptive and gated
         for fx in fixes:
             q_meas = rot.matrix_to_quat((R_LI[k].T @ R_LS @ fx.R_SM).T)  # R_TI = R_MS R_SL R_LI
             p_ML = R_LS @ fx.p_MinS
-            cov_att, cov_pos = fix_covariance(
-                fx, self.sigma, self._view_step(x, P), plane_threshold(tun, self.sigma)
+            centre_M = self._rect_centre.get(fx.rectangle)
+            noise = fix_noise(
+                fx,
+                self.sigma,
+                thr,
+                tun.fix_error_slow_fractions if slow_states else (0.0,) * 6,
+                tun.fix_error_decorrelation_spacings,
+                centre_M,
+                fx.p_MinS + fx.R_SM @ (centre_M if centre_M is not None else np.zeros(3)),
+                tun.attitude_noise_scale,
+                tun.position_noise_scale,
+                tun.fix_error_oblique_spacings if slow_states else 0.0,
+                tun.fix_error_oblique_normal if slow_states else 0.0,
             )
-            cov_att = tun.attitude_noise_scale * cov_att
-            cov_pos = tun.position_noise_scale * cov_pos
+            scales = None
+            if learn:
+                learnt = np.asarray(tun.fix_noise_learnt, dtype=bool)
+                scales = np.where(learnt, np.maximum(rate / shape, 1e-3), 1.0)
             R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)
             R_TP = fx.R_MP if fx.R_MP is not None else np.eye(3)
             y, Hp = measurement(x, R_LI[k])
-            H_att = np.zeros((3, LAYOUT.dim))
-            H_att[:, _E_ATT] = np.eye(3)
-            H = np.vstack([H_att, Hp])
-            nu = np.r_[rot.boxminus(q_meas, x[_X_ATT]), p_ML - y]
-            R = np.zeros((6, 6))
-            R[:3, :3] = R_TP @ cov_att @ R_TP.T
-            R[3:, 3:] = R_LP @ cov_pos @ R_LP.T
+            H = np.zeros((6, lay.dim))
+            H[:3, _E_ATT] = np.eye(3)
+            H[3:, : LAYOUT.dim] = Hp
+            T = np.zeros((6, 6))
+            T[:3, :3], T[3:, 3:] = R_TP, R_LP
+            if slow_states:
+                # this rectangle's slow in-plane error (tumblenav): decayed over the view's
+                # turn since its last fix, then seen through this fix's in-plane axes
+                j = self._rect_index[fx.rectangle]
+                self._decay(x, P, j, memo.clock - last[j], noise.decorrelation_rad)
+                last[j] = memo.clock
+                e = lay.err("fix_errors").start + SLOW_PER_RECTANGLE * j
+                H[:, e : e + SLOW_PER_RECTANGLE] = T @ noise.slow_factor(scales)
+            if "fix_range_bias" in names:
+                # the fixes' common bias along the line of sight (tumblenav): the centroid
+                # of a face sits a fraction of the ray spacing nearer the sensor than its
+                # centre, averaged over the views (m; its prior from the start's fixes)
+                los = R_LS @ (fx.p_MinS / np.linalg.norm(fx.p_MinS))
+                H[3:, lay.err("fix_range_bias")] = los[:, None]
+            # the measurement's mean includes the fixes' error states' (zero unless estimated)
+            extra = H[:, LAYOUT.dim :] @ x[LAYOUT.nominal_dim :]
+            nu = np.r_[rot.boxminus(q_meas, x[_X_ATT]), p_ML - y] - extra
+            R = T @ noise.cov(scales) @ T.T
             S = H @ P @ H.T + R
             d2 = nu @ np.linalg.solve(S, nu)
             if tun.multi_solution_fix and d2 > chi2.ppf(tun.gate_probability, 6):
                 # NIS gate (rejections counted); off without the fix, to show its jumps
                 skipped["gated_out"] += 1
+                far = max(far, float(np.linalg.norm(nu[:3])))
                 continue
+            HPH_prior = T.T @ H @ P @ H.T @ T
             K = np.linalg.solve(S, H @ P).T
+            unexcited = unexcited_ratios(x[_X_RATE], x[_X_INERTIA], P[_E_RATE, _E_RATE])
             if tun.consider_unexcited_ratios:
                 # Schmidt (consider) update for the ratios the motion does not excite: no
                 # gain, so no information from nothing; their covariance and its coupling to
                 # the rate stay, and the Joseph form below is exact for any gain
-                unexcited = unexcited_ratios(x[_X_RATE], x[_X_INERTIA], P[_E_RATE, _E_RATE])
                 K[_E_INERTIA][unexcited] = 0.0
-                if tun.consider_spin_axis_offset and spin_axis_fixed(
-                    x[_X_RATE], x[_X_INERTIA], unexcited, P[_E_RATE, _E_RATE]
-                ):
-                    # a spin about a principal axis: the offset along the spin axis (fixed
-                    # in T and in inertial space) is told from r only by the Hill model's
-                    # curvature of r over the run (2% at 200 s in LEO), which mm of slowly
-                    # varying fix error mimic; it gets no gain either (tumblenav default)
-                    u = x[_X_RATE] / np.linalg.norm(x[_X_RATE])
-                    K[_E_OFFSET] = (np.eye(3) - np.outer(u, u)) @ K[_E_OFFSET]
-            A = np.eye(LAYOUT.dim) - K @ H
-            P = A @ P @ A.T + K @ R @ K.T  # Joseph form
-            x_new = LAYOUT.boxplus(x, K @ nu)
+            wl = slice(_E_RATE.start, _E_INERTIA.stop)
+            if (
+                gated
+                and tun.consider_spin_axis_offset
+                and spin_axis_fixed(x[_X_RATE], x[_X_INERTIA], unexcited, P[wl, wl])
+            ):
+                # a spin whose axis u stays put in T (and in L): moving the offset along u
+                # and r with it, (dr, db) = (R_LT u, u), changes no fix; only the Hill
+                # model's curvature of r over the run (2% at 200 s in LEO) tells them
+                # apart, and the linearisation at a noisy attitude and rate (the estimated
+                # axis wobbles by mrad) claims far more. The update gets no component along
+                # that direction (an observability-constrained gain, cf. Huang, Mourikis &
+                # Roumeliotis 2010 for EKF-SLAM; tumblenav): it keeps its prior there
+                u = x[_X_RATE] / np.linalg.norm(x[_X_RATE])
+                nul = np.zeros(lay.dim)
+                nul[_E_POS] = R_LI[k] @ rot.quat_to_matrix(x[_X_ATT]).T @ u
+                nul[_E_OFFSET] = u
+                K = K - np.outer(nul, nul @ K) / (nul @ nul)
+            x_new = lay.boxplus(x, K @ nu)
             if not physical_inertia(x_new[_X_INERTIA]) and physical_inertia(x[_X_INERTIA]):
                 # a step that makes the inertia not positive definite would let the Euler
                 # equations explode: keep the ratios where they were, take the rest, and
-                # count it
-                x_new[_X_INERTIA] = x[_X_INERTIA]
+                # count it; the ratios get no gain from this fix, so the covariance says
+                # what was done (a Schmidt update of them; tumblenav: the covariance used
+                # to take the refused step, and the ratios grew over-confident in a tumble)
+                K[_E_INERTIA] = 0.0
+                x_new = lay.boxplus(x, K @ nu)
                 skipped["nonphysical_inertia"] += 1
             if np.linalg.norm(x_new[_X_RATE]) > self._max_rate:
                 # a rate beyond pi per scan interval cannot be told from a slower one (the
                 # scans alias it): such a step (a jump between symmetric cases) keeps the
-                # previous rate, and is counted (tumblenav default)
-                x_new[_X_RATE] = x[_X_RATE]
+                # previous rate, and is counted (tumblenav default); no gain on it either
+                K[_E_RATE] = 0.0
+                x_new = lay.boxplus(x, K @ nu)
                 skipped["nonphysical_rate"] += 1
+            A = np.eye(lay.dim) - K @ H
+            P = A @ P @ A.T + K @ R @ K.T  # Joseph form: exact for the gain taken
+            if learn:
+                shape, rate = self._learn_noise(
+                    shape, rate, T.T @ nu, HPH_prior, T.T @ S @ T, noise
+                )
             x = x_new
             nis += d2
             dof += 6
-        gated_run, restarts = belief.memo if belief.memo is not None else (0, ())
-        gated_run = gated_run + 1 if fixes and dof == 0 else 0 if dof else gated_run
+        # lost track: epochs in a row whose every fix is gated out, one of them at least
+        # start_agreement_deg off in attitude (a wrong rectangle or branch followed; a
+        # stretch of grazing views, gated for their centres, is not: tumblenav)
+        off = far > np.radians(tun.start_agreement_deg)
+        gated_run = memo.gated_run
+        gated_run = gated_run + 1 if fixes and dof == 0 and off else 0 if dof else gated_run
+        memo = replace(
+            memo,
+            gated_run=gated_run,
+            last_seen=tuple(last),
+            noise_shape=tuple(shape),
+            noise_rate=tuple(rate),
+        )
         if tun.multi_solution_fix and gated_run >= tun.reinit_after_gated:
             # lost track: every fix of the last epochs disagreed with the prediction
             fresh, why = self.initialise(k, previous=x)
             if fresh is not None:
                 skipped["reinitialised"] = 1
-                memo = (0, (*restarts, float(self.meas.t[k])))
-                return Belief(belief.t, fresh.x, fresh.P, LAYOUT, memo), StepInfo(skipped=skipped)
+                memo = self._start_memo(memo, float(self.meas.t[k]))
+                return Belief(belief.t, fresh.x, fresh.P, lay, memo), StepInfo(skipped=skipped)
         info = StepInfo(nis=nis if dof else float("nan"), dof=dof, skipped=skipped)
-        return Belief(belief.t, x, P, LAYOUT, (gated_run, restarts)), info
+        return Belief(belief.t, x, P, lay, memo), info
+
+    def _learn_noise(
+        self, shape: Array, rate: Array, nu_P: Array, HPH_P: Array, S_P: Array, noise
+    ) -> tuple[Array, Array]:
+        """One fix's evidence on the variance scales of the fix model's white part, per
+        component (:data:`fixes.COMPONENTS`; tumblenav, beyond Yu 2019). The ray grid's
+        errors are 0.04-1x the model's ``h^2 / 12`` in the plane and 0.2-1.2x the first-order
+        variances otherwise, as the grid happens to lie on the faces (measured on the five yu
+        scenarios of issue 18): no fixed model fits them all, so each scale is learnt from
+        the innovations (covariance matching, Mehra 1972, IEEE TAC 17(5)): ``nu^2 - (H P
+        H^T)`` estimates ``s r`` (``nu_P``, ``HPH_P``, ``S_P``: the innovation, ``H P- H^T``
+        and ``S`` in P; ``r``: the white variance at scale 1), with a variance ``~ 2 S^2``,
+        so each sample is weighted by ``(s r / S)^2``, the share of ``S`` that is the fix's
+        own noise. The weights and weighted samples are summed with a fading memory of
+        ``fix_noise_memory_fixes`` fixes (``shape``, ``rate``: their sums, half each; the
+        scale is ``rate / shape``; a start worth ``fix_noise_prior_fixes`` at scale 1)."""
+        base = np.maximum(np.diag(noise.cov()), 1e-300)
+        lam = 1.0 - 1.0 / self.tun.fix_noise_memory_fixes
+        s_prev = np.maximum(rate / shape, 1e-3)
+        w = (s_prev * base / np.maximum(np.diag(S_P), 1e-300)) ** 2
+        sample = (nu_P**2 - np.diag(HPH_P)) / base
+        return lam * shape + 0.5 * w, lam * rate + 0.5 * w * sample
 
     def report(self, belief: Belief, k: int) -> Array:
         return belief.P

@@ -43,6 +43,23 @@ _E_ATT, _E_RATE, _E_INERTIA, _E_POS, _E_VEL, _E_OFFSET = (
 )
 
 
+SLOW_PER_RECTANGLE = 6  # the slow errors of each rectangle's fixes (fixes.COMPONENTS)
+
+
+def filter_layout(n_rectangles: int, range_bias: bool = False) -> StateLayout:
+    """LAYOUT and, after it (tumblenav, beyond Yu 2019; :mod:`.filter`): the fixes' common
+    bias along the line of sight (``range_bias``: ``fix_range_bias``, one state), and the
+    slowly varying errors of each model rectangle's fixes (``fix_errors``,
+    ``SLOW_PER_RECTANGLE`` per rectangle in the model's order), all normalised to unit
+    variance. The estimate reports LAYOUT only (the marginal of these)."""
+    blocks = list(LAYOUT.blocks)
+    if range_bias:
+        blocks.append(Block("fix_range_bias", "vector", 1))
+    if n_rectangles:
+        blocks.append(Block("fix_errors", "vector", SLOW_PER_RECTANGLE * n_rectangles))
+    return StateLayout(tuple(blocks))
+
+
 _X_TRANS = slice(_X_POS.start, _X_VEL.stop)  # [r, v]: the Hill model's state
 
 
@@ -141,7 +158,9 @@ def spin_axis_fixed(
     """True for a spin whose axis stays put in T (tumblenav default): three ratios unexcited
     (:func:`unexcited_ratios`: a spin about a principal axis), or the axis turning in T
     (eq. 28's ``omega'``) at below ``max_nutation`` of the spin, ``max_nutation |omega|^2``,
-    plus 3 sigma of what the rate's own covariance ``P_w`` makes of ``omega'``."""
+    plus 3 sigma of what the uncertainty makes of ``omega'``: ``P_w`` the rate's (3, 3)
+    covariance, or the (8, 8) covariance of the rate and the ratios (a guessed inertia whose
+    products of inertia are not yet known predicts a nutation the motion need not have)."""
     wn = float(np.linalg.norm(w))
     if wn == 0.0 or not physical_inertia(l):
         return False
@@ -150,7 +169,8 @@ def spin_axis_fixed(
     wdot = euler_full(w, l)
     noise = 0.0
     if P_w is not None:
-        J = rotational_F(w, l)[_E_RATE, _E_RATE]
+        F = rotational_F(w, l)
+        J = F[_E_RATE, _E_RATE] if len(P_w) == 3 else F[_E_RATE, _E_RATE.start : _E_INERTIA.stop]
         noise = float(np.trace(J @ P_w @ J.T))
     return bool(wdot @ wdot < (max_nutation * wn**2) ** 2 + 9.0 * noise)
 
@@ -177,10 +197,13 @@ def _propagate(
     Phr, Qr = discretise(rotational_F(w, l), Qc, dt)
     Pht, Qt = cw_discrete(n, q_c if q_t is None else q_t, dt)
     x[_X_TRANS] = Pht @ x[_X_TRANS]
-    Phi = np.eye(LAYOUT.dim)
+    # states beyond LAYOUT (the fixes' slowly varying errors, filter.py) are constant here:
+    # they decay when their rectangle is seen again (exact for states that neither drive nor
+    # are driven by the others)
+    Phi = np.eye(len(P))
     Phi[_E_ROT, _E_ROT] = Phr
     Phi[_E_TRANS, _E_TRANS] = Pht
-    Qk = np.zeros((LAYOUT.dim, LAYOUT.dim))
+    Qk = np.zeros_like(P)
     Qk[_E_ROT, _E_ROT] = Qr
     Qk[_E_TRANS, _E_TRANS] = Qt
     return x, Phi @ P @ Phi.T + Qk

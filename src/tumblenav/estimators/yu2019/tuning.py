@@ -89,21 +89,95 @@ class DepthTuning(BaseModel):
         "true ratios with this on)",
     )
     position_noise_scale: float = Field(
-        2.0,
+        1.0,
         gt=0,
-        description="variance multiplier on each fix's centre covariance (fixes."
-        "fix_covariance: the ray grid's edge phase, h^2/12 in the plane, inflated for its "
-        "scan-to-scan correlation, and sigma^2/n along the normal). The model covers each "
-        "fix's error (measured 0.8x across the spin); 2 for the slowly varying errors it "
-        "does not model, which the weakly observable cross-track velocity and spin-axis "
-        "offset integrate (2 runs of yu_paper_disturbed / yu_small_10m, full NEES/dof: 1.82, "
-        "1.05 / 1.08, 1.17 at 1; 1.25, 0.89 / 0.67, 0.94 at 3)",
+        description="variance multiplier on each fix's centre error model (fixes.fix_noise: "
+        "the ray grid's edge phase h^2/12 in the plane, foreshortened along the view's trace, "
+        "and sigma^2 cos(i)/n along the normal)",
     )
     attitude_noise_scale: float = Field(
         1.0,
         gt=0,
-        description="variance multiplier on each fix's first-order attitude covariance "
-        "(measured 0.6, 0.8 and 0.04x that variance about the three axes, uncorrelated)",
+        description="variance multiplier on each fix's attitude error model (fixes.fix_noise: "
+        "the tilts from the plane fit, eq. 4-5 with sigma^2 cos(i), the turn about the "
+        "normal from the edges' phase)",
+    )
+    fix_error_states: bool = Field(
+        True,
+        description="carry the slowly varying part of each rectangle's fix errors (the ray "
+        "grid's edge phase, the same from scan to scan until the view turns) as first-order "
+        "Gauss-Markov states, six per model rectangle, so that R is the white part only "
+        "(tumblenav, beyond Yu 2019); false: all of it white",
+    )
+    fix_error_slow_fractions: list[float] = Field(
+        [0.3, 0.3, 0.3, 0.5, 0.5, 0.3],
+        min_length=6,
+        max_length=6,
+        description="the slowly varying share of each fix component's variance: the attitude "
+        "about the rectangle's short side, long side and normal, the centre along them "
+        "(measured on the yu scenarios of issue 18 at a decorrelation of 7 spacings: 0-0.06, "
+        "0-0.18, 0-0.28, 0.07-0.56, 0.07-0.57, 0.01-0.06; 0.3 on the attitude and the normal "
+        "covers the slow errors the autocorrelation over 40 scans misses)",
+    )
+    fix_error_decorrelation_spacings: float = Field(
+        7.0,
+        gt=0,
+        description="the view turn over which the slow part decorrelates (e-fold), in ray "
+        "spacings across the face: this x h/a rad (fitted 5-9 spacings, 0.11-0.37 rad, on "
+        "the yu scenarios of issue 18, at 0.009-0.035 rad per scan)",
+    )
+    fix_error_oblique_spacings: float = Field(
+        0.2,
+        ge=0,
+        description="1-sigma, in ray spacings h times sin(i), of a face's centre error along "
+        "the view's trace on it that the view's obliquity makes (a slow state, not scaled "
+        "by the learnt scales; measured: -0.3 h grazing to +0.15 h near face on, the same "
+        "in every run)",
+    )
+    fix_error_oblique_normal: float = Field(
+        0.5,
+        ge=0,
+        description="1-sigma, in threshold^2 / (2 b) times sin(i), of the plane's offset "
+        "that the strip of the face-on neighbour in its slab makes when the face is seen "
+        "obliquely (a slow state; measured 0.5 of it, inward, at grazing)",
+    )
+    fix_range_bias_spacings: float = Field(
+        0.15,
+        ge=0,
+        description="1-sigma of the fixes' common bias along the line of sight, in ray "
+        "spacings h of the start's fixes: a random constant the filter carries (tumblenav; "
+        "measured on the yu scenarios of issue 18: the rectangles' centres sit 0.08-0.12 h "
+        "nearer the sensor, averaged over the views, the same in every run; 0: none)",
+    )
+    fix_noise_adaptive: bool = Field(
+        True,
+        description="learn a variance scale per fix component (attitude about and centre "
+        "along the rectangle's short side, long side and normal) from the innovations "
+        "(weighted covariance matching, tumblenav): the ray grid's errors are 0.04-1x the "
+        "model's, as the grid happens to lie on the faces; false: the model's variances",
+    )
+    fix_noise_learnt: list[bool] = Field(
+        [True, True, False, True, True, True],
+        min_length=6,
+        max_length=6,
+        description="with fix_noise_adaptive: which components' scales are learnt (attitude "
+        "about the short side, long side, normal; centre along them). The turn about the "
+        "normal keeps the model's: it comes from the edges alone, carries the model's own "
+        "asymmetries (a per-face bias of 1 mrad on yu2019's bus-y) and heavy tails, and a "
+        "learnt scale (0.05-0.2) let the attitude about the normal drift on yu_large_50m (9 "
+        "of 20 runs lost track)",
+    )
+    fix_noise_memory_fixes: float = Field(
+        100.0,
+        gt=1,
+        description="with fix_noise_adaptive: the number of fixes the learnt scales remember "
+        "(the evidence fades by 1 - 1/this per fix)",
+    )
+    fix_noise_prior_fixes: float = Field(
+        4.0,
+        gt=0,
+        description="with fix_noise_adaptive: the weight, in fixes, of the start's scale 1 "
+        "(the model's variances)",
     )
     consider_unexcited_ratios: bool = Field(
         True,
@@ -131,13 +205,13 @@ class DepthTuning(BaseModel):
         "rectangle side",
     )
     consider_spin_axis_offset: bool = Field(
-        False,
-        description="no gain on the mass-centre offset along a spin axis that stays put in "
-        "T (model.spin_axis_fixed): there it is told from r only by the Hill model's "
-        "curvature, which slowly varying fix errors mimic. Off by default: on the yu2019 "
-        "runs it moved those errors into the cross-track velocity (0.5 mm/s against 0.015, "
-        "velocity NEES/dof 3.1 against 0.4, 2 runs), while the offset stays consistent "
-        "without it (NEES/dof 1.0)",
+        True,
+        description="while the spin axis may stay put in T (model.spin_axis_fixed, within "
+        "the rate's and the ratios' uncertainty), the update gets no component along "
+        "(dr, db) = (R_LT u, u), which no fix sees: only the Hill model's curvature tells "
+        "it, and the linearisation at a noisy attitude claims far more (an "
+        "observability-constrained gain; tumblenav). False: the plain gain (on yu2019 the "
+        "offset along the axis then settled 2-3 sigma off)",
     )
     multi_solution_fix: bool = Field(
         True,
