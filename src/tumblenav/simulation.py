@@ -548,7 +548,9 @@ def with_track_truth(
         ids = np.flatnonzero(has & (first == k))
         sun = src.sun_C[k]
         out = src.renderer.render(  # type: ignore[attr-defined]
-            src.R_CM[k], src.p_MinC[k], None if np.isnan(sun).any() else sun,
+            src.R_CM[k],
+            src.p_MinC[k],
+            None if np.isnan(sun).any() else sun,
             np.random.default_rng(0),  # the noise does not touch the truth maps
             truth=True,
         )

@@ -35,6 +35,7 @@ def runs_on(consumes: tuple[str, ...], given: str) -> bool:
     (directly, or after the front end of :data:`CONVERTS`)."""
     return given in consumes or CONVERTS.get(given) in consumes
 
+
 __all__ = [
     "CONVERTS",
     "DEPTH_CLOUDS",

@@ -58,9 +58,7 @@ class HoldCentroid:
             R_LC = rot.quat_to_matrix(measurements.q_CL[k0]).T  # q_CL maps L into C
             x[k0:, LAYOUT.nom("position")] = R_LC @ centroid_C
             x[k0:, LAYOUT.nom("velocity")] = 0.0
-            P[k0:] = np.diag(
-                [tun.sigma_position_m**2] * 3 + [tun.sigma_velocity_m_s**2] * 3
-            )
+            P[k0:] = np.diag([tun.sigma_position_m**2] * 3 + [tun.sigma_velocity_m_s**2] * 3)
         return EstimateHistory(
             t=t,
             x=x,
