@@ -1,0 +1,98 @@
+"""Which part of an estimator's state is over-confident? Mean NEES/dof per block, any estimator.
+
+For each run (the seeds of ``tumblenav montecarlo``: run k of base seed ``--base-seed``), the
+scenario is simulated, the measurements go through the front end the estimator consumes (as in
+a campaign), and the NEES per degree of freedom of each block of the estimator's error state
+(``layout.blocks``) and of the whole state is averaged over the scenario's steady-state window
+(the last quarter without one), on up to ~200 epochs evenly spread. The truth is aligned with
+the estimate's symmetric frame as the evaluation does (``evaluation.alignment.align``).
+
+Usage::
+
+    python benchmarks/block_nees.py SCENARIO ESTIMATOR [--seeds 0,1,2]
+        [--tuning '{"key": value}'] [--series BLOCK]
+
+``--tuning`` updates the scenario's ``estimator.tuning`` (JSON); ``--series BLOCK`` prints that
+block's error, 1-sigma and NEES/dof over time for each run. Last line: ``block_nees
+<block>=<mean over runs> ... all=<mean>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from tumblenav.campaign.store import run_seed
+from tumblenav.estimators import base as est_base
+from tumblenav.estimators.context import context_from_scenario
+from tumblenav.evaluation.alignment import align
+from tumblenav.frontends import stages
+from tumblenav.scenario import load_scenario
+from tumblenav.simulation import run_streams, simulate
+
+
+def run_blocks(sc, est, k: int, series: str | None = None) -> dict[str, float]:
+    """Mean NEES/dof per block of run ``k`` in the scenario's window."""
+    truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
+    images = getattr(sc.sensor, "images", None)
+    consumes = tuple(getattr(est, "consumes", ()))
+    tracks, _ = stages.prepare(meas, consumes, images.frontend if images else None)
+    h = est.run(
+        context_from_scenario(sc), tracks, run_streams(run_seed(sc.montecarlo.seed, k))["estimator"]
+    )
+    dx = h.layout.boxminus(align(truth, h).x, h.x)
+    t = h.t
+    w0, w1 = sc.window_s if sc.window_s else (0.75 * t[-1], t[-1])
+    finite_P = np.array([h.P[i] is not None and np.all(np.isfinite(h.P[i])) for i in range(len(t))])
+    ok = np.all(np.isfinite(dx), axis=1) & finite_P
+    sel = np.flatnonzero((t >= w0) & (t <= w1) & ok)
+    sel = sel[:: max(1, len(sel) // 200)]
+    E = np.arange(h.layout.dim)
+    blocks = [(b.name, E[h.layout.err(b.name)]) for b in h.layout.blocks] + [("all", E)]
+
+    def nees(i: int, ix: np.ndarray) -> float:
+        e = dx[i, ix]
+        return float(e @ np.linalg.solve(h.P[i][np.ix_(ix, ix)], e) / len(ix))
+
+    out = {
+        name: float(np.mean([nees(i, ix) for i in sel])) if len(sel) else np.nan
+        for name, ix in blocks
+    }
+    if series:
+        ix = E[h.layout.err(series)]
+        for i in np.flatnonzero(ok)[:: max(1, int(ok.sum()) // 25)]:
+            s = np.sqrt(np.diag(h.P[i])[ix])
+            print(
+                f"  t={t[i]:8.1f} error {np.round(dx[i, ix], 5)} sigma {np.round(s, 5)} NEES/dof {nees(i, ix):.2f}"
+            )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scenario", help="a built-in name or a YAML path")
+    ap.add_argument("estimator")
+    ap.add_argument("--seeds", default="0,1,2", help="run numbers, comma-separated")
+    ap.add_argument("--tuning", default="{}", help="JSON updating estimator.tuning")
+    ap.add_argument("--series", default=None, help="print this block's error over time")
+    args = ap.parse_args()
+    sc = load_scenario(args.scenario)
+    tuning = json.loads(args.tuning)
+    if tuning:
+        sc = sc.with_updates(**{"estimator.tuning": {**(sc.estimator.tuning or {}), **tuning}})
+    est = est_base.get(args.estimator)
+    rows = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for k in [int(s) for s in args.seeds.split(",")]:
+            r = run_blocks(sc, est, k, args.series)
+            print(f"run {k}: " + " ".join(f"{n}={v:.3g}" for n, v in r.items()), flush=True)
+            rows.append(r)
+    names = list(rows[0])
+    print("block_nees " + " ".join(f"{n}={np.nanmean([r[n] for r in rows]):.3g}" for n in names))
+
+
+if __name__ == "__main__":
+    main()
