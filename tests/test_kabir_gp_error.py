@@ -180,3 +180,112 @@ def test_inconsistency_measures_what_no_rigid_motion_explains(sigma_b):
     Jc = J[k][:, cols].reshape(-1, 6)
     w = np.tile(1.0 / np.r_[np.full(3, s2[k, 0]), np.full(3, s2[k, 1])], 5)
     np.testing.assert_allclose(Db[k], np.linalg.inv(Jc.T @ (Jc * w[:, None])), rtol=1e-6)
+
+
+def test_measurement_jacobians_against_central_differences():
+    rng = np.random.default_rng(5)
+    n = 4
+    h = history(state(), n)
+    h.x[:] += np.r_[rng.normal(size=3) * 1e-3, np.zeros(4), rng.normal(size=17) * 1e-2]
+    h.x[:, 3:7] = rot.exp_quat(rng.normal(size=(n, 3)))
+    g = geometry(n)
+    ks = np.arange(n)
+    J = ukf_gp.measurement_jacobians(h.layout, g, h.x, ks)
+    lay, d, eps = h.layout, h.layout.dim, 1e-5
+    for j in range(d):
+        dx = np.zeros((n, d))
+        dx[:, j] = eps
+        hp = O.measurement_model(lay.boxplus(h.x, dx), g.R_CI, g.rho0_C, g.rho0_dot_C, CENTRES_X)
+        hm = O.measurement_model(lay.boxplus(h.x, -dx), g.R_CI, g.rho0_C, g.rho0_dot_C, CENTRES_X)
+        num = (hp - hm) / (2 * eps)
+        scale = np.abs(num).max() + 1e-12
+        np.testing.assert_allclose(J[..., j], num, rtol=0, atol=1e-5 * scale)
+
+
+def test_floor_congruence_maps_the_filters_covariance_onto_the_actual_one():
+    rng = np.random.default_rng(6)
+    Pf = random_cov(17, rng, np.full(17, 1e-4))
+    Pa = random_cov(17, rng, np.full(17, 3e-5))
+    S = ukf_gp.floor_congruence(Pf, Pa)
+    np.testing.assert_allclose(S, S.T, rtol=0, atol=1e-12 * np.abs(S).max())
+    assert np.all(np.linalg.eigvalsh(S) > 0)
+    np.testing.assert_allclose(S @ Pf @ S, Pa, rtol=0, atol=1e-9 * np.abs(Pa).max())
+    np.testing.assert_allclose(ukf_gp.floor_congruence(Pf, Pf), np.eye(17), atol=1e-9)
+
+
+def test_rigid_floor_correction_is_the_error_covariance_of_a_filter_with_the_floor():
+    # a Monte Carlo of the linearised problem: the truth's rigid parameters are constant and its
+    # rate and attitude walk with the real Q; a Kalman filter with the floor on the rigid
+    # parameters (Q_f) measures eq. 22-23's projections at every epoch but the last ten. Its
+    # errors' covariance is P_a, its own P is P_f; P_a is below P_f (the floor is fictitious)
+    # and nothing changes where nothing is measured
+    rng = np.random.default_rng(7)
+    n, runs = 40, 4000
+    h = history(state(), n)
+    lay, d = h.layout, h.layout.dim
+    h.P[:] = np.nan
+    P0 = np.diag(np.r_[np.full(3, 1e-8), np.full(3, 1e-6), np.full(2, 1e-6), np.full(15, 1e-6)])
+    h.P[0] = P0
+    g = geometry(n)
+    z = np.zeros((n, 5, 9))
+    z[-10:] = np.nan
+    z[5, 2, :] = np.nan  # a feature not seen
+    R = np.broadcast_to(np.r_[np.full(5, 1e-10), np.full(4, 1e-8)], z.shape).copy()
+    tun = T.parse_tuning(
+        {
+            "mass_centre_L_m": [0.0, 10.0, 0.0],
+            "q_omega_var": 1e-9,
+            "q_quat_var": 1e-9,
+            "q_k_var": 1e-9,
+            "q_feature_var": 1e-9,
+            "sigma_flow_rad_s": 1e-4,
+        }
+    )
+    Pf, Pa = ukf_gp.rigid_floor_correction(h, h.t, z, R, tun, g)
+    E = np.arange(d)
+    dyn = np.r_[E[lay.err("rate")], E[lay.err("attitude")], E[lay.err("inertia")]]
+    Fd = ukf_gp._step_jacobians(lay, h.x, h.t, dyn, np.arange(1, n))
+    H = ukf_gp.measurement_jacobians(lay, g, h.x, np.arange(n))
+    qa = np.r_[np.full(3, 1e-9), np.full(3, 4e-9), np.zeros(17)]
+    qf = np.r_[np.full(3, 1e-9), np.full(3, 4e-9), np.full(17, 1e-9)]
+    e = rng.multivariate_normal(np.zeros(d), P0, size=runs)  # (runs, d) the filter's error
+    P = P0.copy()
+    for k in range(1, n):
+        F = np.eye(d)
+        F[np.ix_(dyn, dyn)] = Fd[k - 1]
+        zk = z[k].reshape(-1)
+        seen = np.isfinite(zk)
+        e = e @ F.T + rng.normal(size=(runs, d)) * np.sqrt(qa)
+        P = F @ P @ F.T + np.diag(qf if seen.any() else qa)
+        if seen.any():
+            Hk = H[k].reshape(-1, d)[seen]
+            Rk = R[k].reshape(-1)[seen]
+            K = np.linalg.solve(Hk @ P @ Hk.T + np.diag(Rk), Hk @ P).T
+            v = rng.normal(size=(runs, len(Rk))) * np.sqrt(Rk)
+            e = e - (e @ Hk.T + v) @ K.T
+            P = (np.eye(d) - K @ Hk) @ P
+        np.testing.assert_allclose(Pf[k], P, rtol=1e-6, atol=1e-6 * np.abs(P).max())
+    C = np.cov(e.T)  # at the last epoch, ten epochs after the last measurement
+    sd = np.sqrt(np.diag(Pa[-1]))
+    # correlation-scaled comparison: 4000 runs, sampling error ~2-5 %
+    np.testing.assert_allclose(np.diag(C) / sd**2, 1.0, atol=0.1)
+    np.testing.assert_allclose(C / np.outer(sd, sd), Pa[-1] / np.outer(sd, sd), atol=0.1)
+    rig = np.r_[E[lay.err("inertia")], E[lay.err("features")]]
+    # the floor only adds: P_a <= P_f (Loewner order), strictly on the rigid parameters
+    gap = Pf[-1] - Pa[-1]
+    assert np.linalg.eigvalsh(gap).min() > -1e-9 * np.abs(Pf[-1]).max()
+    assert np.all(np.diag(gap)[rig] > 0.02 * np.diag(Pf[-1])[rig])
+    np.testing.assert_allclose(
+        Pa[-10:][:, rig[:, None], rig],
+        np.broadcast_to(Pa[-10][rig[:, None], rig], (10, len(rig), len(rig))),
+        rtol=1e-9,
+    )
+
+
+def test_pseudo_r_is_the_gps_own_error_where_it_is_a_pseudo_measurement():
+    rng = np.random.default_rng(8)
+    R = rng.uniform(1e-10, 2e-10, size=(6, 5, 9))
+    extra = np.where(rng.uniform(size=R.shape) < 0.5, rng.uniform(1e-9, 1e-8, R.shape), 0.0)
+    out = ukf_gp.pseudo_r(R, extra)
+    np.testing.assert_array_equal(out[extra == 0], R[extra == 0])
+    np.testing.assert_allclose(out[extra > 0], extra[extra > 0] + 0.01 * R[extra > 0])
