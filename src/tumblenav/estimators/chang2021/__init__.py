@@ -55,6 +55,7 @@ SKIP_REASONS = (
     "gated_out",
     "wild_epoch",
     "failed_checks",
+    "slips",
 )
 
 

@@ -31,6 +31,14 @@ observable, so nothing is measured twice.
 * Per-feature chi-square gate (``feature_gate_probability``, 3 dof): a rejected feature is
   counted (``rejected``, ``skipped['gated_out']``) and removed from the state (its track is
   suspect: a bad match or drift). Joseph-form update, symmetrised.
+* Slips (``slip_probability``; tumblenav's, Chang 2021 has none): before the update each
+  map track's innovation is compared with its residual after the last epoch's step
+  (:func:`slip_test`: a jump test against the epoch's own tracks, robust scale); a track that
+  jumped to another surface point (image tracks: 2.3 % of the frame-to-frame increments
+  exceed 1 px and 80 % of those persist) is re-anchored: its map point is dropped and the
+  track augmented again from the current frame as a new feature (``skipped['slips']``), so
+  the jump moves neither the pose nor the other features. The gate below, sized for the
+  stated noise, passes such jumps when the stated noise covers the tracks' slow slide.
 * Divergence: an epoch is *wild* when fewer than half of the map's observed features pass the
   gate (the predicted attitude and position explain less than half the data; no update is
   made then); ``divergence_epochs`` wild epochs in a row stop the run (``StepInfo(diverged=
@@ -98,6 +106,7 @@ class MapMemo:
     wild: int = 0
     check: tuple[int, Array, Array] | None = None  # last check epoch, q_ThatL, P_att there
     fails: int = 0  # failed divergence checks in a row
+    resid: tuple[int, Array] | None = None  # epoch, post-step residuals (m, 3) (slip test)
 
 
 def measurement_jacobian(q_ThatL: Array, s: Array) -> tuple[Array, Array]:
@@ -154,6 +163,29 @@ def _keep(P: Array, s: Array, keep: NDArray[np.bool_]) -> tuple[Array, Array]:
         [np.arange(NP), (NP + 3 * np.flatnonzero(keep)[:, None] + np.arange(3)).ravel()]
     )
     return P[np.ix_(rows, rows)], s[keep]
+
+
+def slip_test(e: Array, C: Array, probability: float, min_features: int = 10) -> NDArray[np.bool_]:
+    """Which tracks slipped (jumped to another surface point) between two epochs: ``e`` (m, 3)
+    each track's innovation now minus its residual after the last epoch's step (the measured
+    displacement of the point less the displacement the filter's propagation predicts, so a
+    bias the track has carried so far cancels and a jump shows whole), ``C`` (m, 3, 3) its
+    covariance's shape (the triangulation covariances of both epochs). A jump of unknown size
+    at a known epoch: the generalised likelihood ratio test of Willsky & Jones (1976, IEEE
+    TAC 21(1), 108-112) reduces over a one-sample window to ``d_i^2 = e_i^T C_i^-1 e_i``
+    against chi-square (3 dof). The scale of ``C`` is not trusted (the stated pixel noise
+    covers the tracks' slow slide, several times their frame-to-frame noise), so it is
+    estimated from the epoch's tracks, robustly (median of ``d^2`` over the chi-square
+    median, as a MAD: Rousseeuw & Croux 1993): a slip is a track ``probability`` out of the
+    epoch's own distribution. Fewer than ``min_features`` tracks: none flagged."""
+    m = len(e)
+    if m < min_features:
+        return np.zeros(m, bool)
+    d2 = np.einsum("mi,mij,mj->m", e, np.linalg.inv(C), e)
+    c = float(np.median(d2)) / chi2.ppf(0.5, 3)
+    if not (np.isfinite(c) and c > 0.0):
+        return np.zeros(m, bool)
+    return np.asarray(d2 > c * chi2.ppf(probability, 3))
 
 
 def _collinear(rho: Array) -> bool:
@@ -357,6 +389,18 @@ class StateSteps(TrackSteps):
         seen = tr.ok_p[k, ids]
         P, s_map = _keep(P, s_map, seen)
         ids = ids[seen]
+        slips = 0
+        if tun.slip_probability is not None and memo.resid is not None:
+            # slipped tracks are re-anchored: dropped here, re-augmented from this frame below
+            kp, res = memo.resid
+            R_LT = rot.quat_to_matrix(x[0:4]).T
+            e = tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T) - res[seen]
+            slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], tun.slip_probability)
+            slips = int(slip.sum())
+            if slips:
+                skipped["slips"] = slips
+                P, s_map = _keep(P, s_map, ~slip)
+                ids = ids[~slip]
         nis, dof, rejected, wild = float("nan"), 0, 0, memo.wild
         m = len(ids)
         if m == 0:
@@ -447,12 +491,16 @@ class StateSteps(TrackSteps):
             if check is None:
                 check = (k, x[0:4].copy(), P[_A, _A].copy())
         ids, s_map, P = self._augment(x, P, ids, s_map, k)
+        resid = None
+        if tun.slip_probability is not None:
+            R_LT = rot.quat_to_matrix(x[0:4]).T
+            resid = (k, tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T))
         return Belief(
             belief.t,
             x,
             P,
             LAYOUT_POSE,
-            MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, check, fails),
+            MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, check, fails, resid),
         ), (StepInfo(nis=nis, dof=dof, rejected=rejected, skipped=skipped))
 
     def report(self, belief: Belief, k: int) -> Array:
