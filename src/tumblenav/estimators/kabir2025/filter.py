@@ -100,22 +100,71 @@ class _UKFModel:
 
         ``coast`` (B,): runs that had no measurement at the previous epoch (a loss of every
         feature: the filter only propagates). For them the mean is the propagated centre
-        point and the covariance ``sum_i>0 W_i (X_i - X_0)(X_i - X_0)^T``, the linearised
-        (divided-difference) propagation of P: the scaled transform's large negative centre
-        weight (alpha = 0.1: W_0 ~ -99) extrapolates the curvature of hundreds of steps of
-        uncorrected propagation, and drove the rate of ukf-mult to 1e4 deg/s through Kabir's
-        1500-s occlusion (tumblenav default).
+        point: the scaled transform's large negative centre weight (alpha = 0.1: W_0 ~ -99)
+        extrapolates the curvature of hundreds of steps of uncorrected propagation, and drove
+        the rate of ukf-mult to 1e4 deg/s through Kabir's 1500-s occlusion. The covariance is
+        ``sum_i>0 W_i (X_i - X_0)(X_i - X_0)^T`` over the points of ``tun.coast_covariance``:
+        the cubature rule's (default: points at +- sqrt(d) sigma, which see how a rate error
+        shifts the polhode's phase over the coast) or alpha's (at 0.1 sqrt(d) sigma: the
+        linearised propagation, which let the rate and attitude errors of kabir_paper's loss
+        grow 2-6x beyond their sigma). tumblenav defaults.
 
         ``rigid_fixed`` (B,): runs predicting into an epoch whose update leaves the rigid
-        parameters alone (``consider`` in :meth:`update`): no process noise on them. Their Q
-        is a floor for what thousands of updates' linearisation errors do to them
-        (:func:`~.tuning.derive_tuning`); without an update the rigid body's inertia and
-        features do not move.
+        parameters alone (``consider`` in :meth:`update`): no process noise on them, nor on
+        runs in ``coast``. Their Q is a floor for what thousands of updates' linearisation
+        errors do to them (:func:`~.tuning.derive_tuning`); without an update the rigid
+        body's inertia and features do not move.
         """
-        Wm = self.ut.Wm
         B = x.shape[0]
         coast = np.zeros(B, dtype=bool) if coast is None else np.asarray(coast, dtype=bool)
-        X, _, rep = self.sigma(x, P)
+        x_in, P_in = x, P
+        x, D, rep = self._propagate_points(self.ut, x_in, P_in, dt, coast)
+        P = self.ut.cov(D, D)
+        if coast.any():
+            # a coast: the mean is the propagated centre point (above), the covariance the
+            # spread of the points about it; the cubature rule's points by default
+            # (coast_covariance; tumblenav, issue 18)
+            ut = self.ut
+            if self.tun.coast_covariance == "cubature":
+                ut = self._coast_ut
+                _, Dc_all, rep_c = self._propagate_points(ut, x_in[coast], P_in[coast], dt, None)
+                rep[coast] |= rep_c
+            else:
+                Dc_all = D[coast]
+            Dc = Dc_all[:, 1:]
+            P[coast] = np.swapaxes(Dc * ut.Wm[1:, None], -1, -2) @ Dc
+        fixed = coast.copy()  # nothing updates the rigid parameters in a coast
+        if rigid_fixed is not None:
+            fixed |= np.asarray(rigid_fixed, dtype=bool)
+        if fixed.any():
+            o = 7 if self.additive else 6
+            Qr = np.broadcast_to(self.Q, P.shape).copy()
+            Qr[fixed, o:, o:] = 0.0
+            P = P + Qr
+        else:
+            P = P + self.Q
+        if not self.additive:  # a long occlusion is all predictions: hold the lost attitude
+            P = _cap_attitude(P)
+        return x, P, rep
+
+    @property
+    def _coast_ut(self) -> _Unscented:
+        """The third-degree spherical-radial cubature rule (Arasaratnam & Haykin 2009) as
+        an unscented transform: alpha 1, kappa 0 (lambda 0: no centre weight, the 2d points
+        at +- sqrt(d) columns of sqrt(P), weights 1/(2d))."""
+        return _Unscented.make(self.Q.shape[-1], 1.0, 0.0, 0.0)
+
+    def _propagate_points(
+        self, ut: _Unscented, x: Array, P: Array, dt: float, coast: NDArray[np.bool_] | None
+    ) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """Kabir 2025 eq. 13-14 with ``ut``'s points: the predicted mean (B, nom) -- the
+        propagated centre point for runs in ``coast`` (None: every run), else the weighted
+        mean -- the points' deviations from it (B, S, d) and the runs repaired."""
+        Wm = ut.Wm
+        B = x.shape[0]
+        coast = np.ones(B, dtype=bool) if coast is None else coast
+        off, rep = ut.offsets(P)
+        X = x[:, None, :] + off if self.additive else _boxplus(x[:, None, :], off)
         w, q = propagate_rotation_compiled(X[..., 0:3], X[..., 3:7], X[..., 7:9], dt)
         if self.additive:
             X = np.concatenate([w, q, X[..., 7:]], axis=-1)
@@ -137,21 +186,7 @@ class _UKFModel:
                 [w - x[:, None, 0:3], e - e_bar[:, None, :], X[..., 7:] - x[:, None, 7:]],
                 axis=-1,
             )
-        P = self.ut.cov(D, D)
-        if coast.any():
-            Dc = D[coast, 1:]
-            Pc = np.swapaxes(Dc * Wm[1:, None], -1, -2) @ Dc
-            P[coast] = Pc
-        if rigid_fixed is not None and np.any(rigid_fixed):
-            o = 7 if self.additive else 6
-            Qr = np.broadcast_to(self.Q, P.shape).copy()
-            Qr[np.asarray(rigid_fixed, dtype=bool), o:, o:] = 0.0
-            P = P + Qr
-        else:
-            P = P + self.Q
-        if not self.additive:  # a long occlusion is all predictions: hold the lost attitude
-            P = _cap_attitude(P)
-        return x, P, rep
+        return x, D, rep
 
     def update(
         self,

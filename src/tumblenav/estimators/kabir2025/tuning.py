@@ -162,6 +162,17 @@ class KabirTuning(BaseModel):
     gate_probability: float | None = Field(
         None, gt=0, lt=1, description="per-feature chi-square innovation gate; default: none"
     )
+    coast_covariance: Literal["cubature", "linearised"] = Field(
+        "cubature",
+        description="the covariance while no feature is measured (a coast): 'cubature', "
+        "the third-degree spherical-radial rule's points (Arasaratnam & Haykin 2009: +- "
+        "sqrt(d) columns of sqrt(P), equal weights) propagated about the propagated centre "
+        "point, which follows the spread of the polhode phase a long coast builds "
+        "(tumblenav, issue 18: ukf in kabir_paper's 1500-s loss NEES/dof 4.3 -> 1.0 over 4 "
+        "runs); 'linearised': the unscented points at alpha's spread, i.e. the linearised "
+        "propagation (the former default). Either way the rigid parameters get no process "
+        "noise in a coast (nothing updates them)",
+    )
 
     @field_validator("sigma_p_rad", "sigma_d_rad", mode="before")
     @classmethod
