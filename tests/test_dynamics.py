@@ -287,10 +287,14 @@ _rate = st.floats(-0.5, 0.5, allow_nan=False)
 
 
 @settings(max_examples=12)
-@given(_moment, _moment, _moment, _rate, _rate, _rate)
-def test_property_random_bodies(i1, i2, i3, w1, w2, w3):
+@given(_moment, _moment, st.floats(0.0, 1.0, allow_nan=False), _rate, _rate, _rate)
+def test_property_random_bodies(i1, i2, u, w1, w2, w3):
     """Random triaxial inertias (triangle inequality) and rates: numerical vs analytic omega,
-    conservation, and omega(t0 + T_p) = omega0."""
+    conservation, and omega(t0 + T_p) = omega0. The third moment is drawn inside the triangle
+    inequality (|i1 - i2|, i1 + i2), not filtered out of [1, 20]: a newer hypothesis rejected
+    the test for discarding 50 of 58 draws (FailedHealthCheck filter_too_much)."""
+    lo, hi = abs(i1 - i2) + 0.06, i1 + i2 - 0.06
+    i3 = lo + u * (hi - lo)
     inertia = np.array([i1, i2, i3])
     w0 = np.array([w1, w2, w3])
     s = np.sort(inertia)
