@@ -5,6 +5,7 @@ the histories."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -147,7 +148,7 @@ class _UKFModel:
             P = _cap_attitude(P)
         return x, P, rep
 
-    @property
+    @functools.cached_property
     def _coast_ut(self) -> _Unscented:
         """The third-degree spherical-radial cubature rule (Arasaratnam & Haykin 2009) as
         an unscented transform: alpha 1, kappa 0 (lambda 0: no centre weight, the 2d points

@@ -68,10 +68,10 @@ class DepthMemo:
     noise_shape: tuple[float, ...]
     noise_rate: tuple[float, ...]
 
-    @property
-    def noise_scales(self) -> Array:
-        """The fixes' variance scales per component, ``rate / shape`` (at least 1e-3)."""
-        return np.maximum(np.asarray(self.noise_rate) / np.asarray(self.noise_shape), 1e-3)
+
+def _variance_scales(shape: Array, rate: Array) -> Array:
+    """The fixes' learnt variance scales per component, ``rate / shape`` (at least 1e-3)."""
+    return np.maximum(rate / shape, 1e-3)
 
 
 @dataclass(frozen=True)
@@ -118,10 +118,6 @@ class DepthSteps:
     @functools.cached_property
     def _rect_index(self) -> dict[str, int]:
         return {r.name: i for i, r in enumerate(self.model.rectangles)}
-
-    @functools.cached_property
-    def _rects(self) -> dict[str, Any]:
-        return {r.name: r for r in self.model.rectangles}
 
     @functools.cached_property
     def _rect_centre(self) -> dict[str, Array]:
@@ -294,7 +290,7 @@ class DepthSteps:
             scales = None
             if learn:
                 learnt = np.asarray(tun.fix_noise_learnt, dtype=bool)
-                scales = np.where(learnt, np.maximum(rate / shape, 1e-3), 1.0)
+                scales = np.where(learnt, _variance_scales(shape, rate), 1.0)
             R_LP = R_LS @ fx.R_SM @ fx.R_MP if fx.R_MP is not None else np.eye(3)
             R_TP = fx.R_MP if fx.R_MP is not None else np.eye(3)
             y, Hp = measurement(x, R_LI[k])
@@ -420,7 +416,7 @@ class DepthSteps:
         scale is ``rate / shape``; a start worth ``fix_noise_prior_fixes`` at scale 1)."""
         base = np.maximum(np.diag(noise.cov()), 1e-300)
         lam = 1.0 - 1.0 / self.tun.fix_noise_memory_fixes
-        s_prev = np.maximum(rate / shape, 1e-3)
+        s_prev = _variance_scales(shape, rate)
         w = (s_prev * base / np.maximum(np.diag(S_P), 1e-300)) ** 2
         sample = (nu_P**2 - np.diag(HPH_P)) / base
         return lam * shape + 0.5 * w, lam * rate + 0.5 * w * sample
