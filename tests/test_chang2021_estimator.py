@@ -354,3 +354,50 @@ def test_state_map_divergence_check_says_diverged():
         if info.diverged:
             break
     assert info.diverged and info.skipped.get("failed_checks") == 1 and k == 49
+
+
+def test_says_when_one_epochs_features_cannot_fix_the_attitude():
+    """At Chang's printed 59 m (the built-in chang2021, on point tracks) one epoch's features
+    fix the attitude to ~17 deg about the axes across the line of sight (~1 m of depth noise
+    per feature on a 2 m target): the run says so in info['warnings'] (the filter's covariance
+    cannot cover the drift there and the divergence check cannot see it); at ~10 m
+    (chang2021_close) it is ~0.5 deg and the run says nothing. Both checked against the value
+    at the frame epoch, and the value against a Monte Carlo of the depth noise below."""
+    from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
+
+    est = get("ekf-pose")
+    sig = {}
+    for name in ("chang2021", "chang2021_close"):
+        sc = load_scenario(name).with_updates(
+            **{"sensor.images": None, "duration_s": 24.0, "steady_state_window_s": [0.0, 24.0]}
+        )
+        _, meas = simulate(sc, 3)
+        hist = est.run(context_from_scenario(sc), meas, np.random.default_rng(3))
+        sig[name] = hist.info["epoch_attitude_sigma_deg"]
+        tr = feature_tracks(meas)
+        k = hist.info["frame_epoch"]
+        one = np.degrees(epoch_attitude_sigma(tr.p[k, tr.ok_p[k]], tr.P[k, tr.ok_p[k]]))
+        assert 0.5 * one < sig[name] < 2.0 * one  # the window's median near its first epoch's
+        warned = any("fix the attitude" in w for w in hist.info.get("warnings", []))
+        assert warned == (name == "chang2021")
+    assert sig["chang2021"] > 10.0 and sig["chang2021_close"] < 1.0
+
+
+def test_epoch_attitude_sigma_matches_a_monte_carlo_of_depth_noise():
+    """The formula against what it describes: points on a 2 m square across the line of sight
+    at 50 m, each measured with 0.3 m of depth noise; a least-squares turn about the axes
+    across the line of sight (the only unknowns; depth residual = (dtheta x d) . los) from
+    each of 4000 draws has the spread the formula gives (within 5 %)."""
+    from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
+
+    rng = np.random.default_rng(11)
+    d = np.column_stack([np.zeros(40), rng.uniform(-1, 1, 40), rng.uniform(-1, 1, 40)])
+    p = d + np.array([50.0, 0.0, 0.0])  # line of sight along x
+    P = np.tile(np.diag([0.3**2, 1e-8, 1e-8]), (40, 1, 1))
+    sig = epoch_attitude_sigma(p, P)
+    los = np.array([1.0, 0.0, 0.0])
+    A = np.column_stack([np.cross(e, d) @ los for e in np.eye(3)[1:]])  # d(depth)/d(theta_y,z)
+    noise = rng.normal(0.0, 0.3, (4000, 40))
+    th = np.linalg.lstsq(A, noise.T, rcond=None)[0]  # (2, 4000)
+    rms = float(np.sqrt(np.mean(th**2)))
+    assert abs(rms / sig - 1.0) < 0.05

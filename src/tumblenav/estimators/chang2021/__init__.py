@@ -28,6 +28,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, register
 from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
 from tumblenav.estimators.chang2021.model import LAYOUT
+from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
 from tumblenav.estimators.chang2021.slam import LAYOUT_POSE, MapMemo, StateSteps
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
@@ -110,6 +111,17 @@ class PoseEKF:
             )
             if tun.map == "registered":
                 info["map_origin_L_k0"] = [float(v) for v in s.origin_L_k0]
+            sig = _start_attitude_sigma_deg(steps.tracks, s.k0, s.k)
+            info["epoch_attitude_sigma_deg"] = sig
+            if sig > tun.epoch_attitude_warn_deg:
+                info["warnings"] = [
+                    f"ekf-pose: one epoch's features fix the attitude to {sig:.1f} deg (1 sigma "
+                    "about the axes across the line of sight, the start window's median; over "
+                    f"{tun.epoch_attitude_warn_deg:g} deg): the stereo depth noise is too large "
+                    "for the target's size at this range, so the estimate can drift far beyond "
+                    "its covariance without any check noticing (a closer range, a longer "
+                    "baseline or a finer camera would help)"
+                ]
         return EstimateHistory(
             t=meas.t,
             x=r.x,
@@ -120,6 +132,16 @@ class PoseEKF:
             skipped=skipped,
             info=info,
         )
+
+
+def _start_attitude_sigma_deg(tracks, k0: int, k1: int) -> float:
+    """Median over the start window's epochs of one epoch's attitude 1-sigma (deg, about the
+    axes across the line of sight; :func:`.qmethod.epoch_attitude_sigma`)."""
+    sig = [
+        epoch_attitude_sigma(tracks.p[k, tracks.ok_p[k]], tracks.P[k, tracks.ok_p[k]])
+        for k in range(k0, k1 + 1)
+    ]
+    return float(np.degrees(np.median(sig))) if sig else float("nan")
 
 
 register("ekf-pose")(PoseEKF)

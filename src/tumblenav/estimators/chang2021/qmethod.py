@@ -124,3 +124,32 @@ def q_method_covariance(
         return np.full((3, 3), np.inf), H
     P = Hi @ M @ Hi
     return 0.5 * (P + P.T), H
+
+
+def epoch_attitude_sigma(p: ArrayLike, P: ArrayLike) -> float:
+    """1-sigma (rad) of one epoch's attitude about the axes across the line of sight, from its
+    triangulated features ``p`` (M, 3) in the chaser's frame with covariances ``P`` (M, 3, 3):
+    a turn ``dtheta`` about such an axis moves a feature along the line of sight by its lever
+    arm across the line of sight times ``dtheta``, which stereo measures with its depth noise,
+    so ``sigma = sigma_depth / sqrt(sum_i l_i^2 / 2)`` (``l_i``: the lever arm in the plane
+    across the line of sight, about the features' centroid; /2: half of it lies along the
+    turn's axis; ``sigma_depth``: the features' RMS 1-sigma along the line of sight). The
+    lever arms come from the lateral coordinates, which stereo measures well: the q-method's
+    own first-order covariance (:func:`q_method_covariance`) takes them from the noisy points,
+    and where the depth noise is as large as the target it reads the noise as a larger target
+    (3.3 deg at 59 m with 0.5 px and 1.5 deg with 1.5 px). ``inf`` for fewer than three
+    points. What one epoch's features say about the attitude: an EKF linearised about its
+    estimate needs this to be small (a few degrees)."""
+    p = np.asarray(p, dtype=float)
+    P = np.asarray(P, dtype=float)
+    if len(p) < 3:
+        return float("inf")
+    c = p.mean(axis=0)
+    los = c / np.linalg.norm(c)  # the line of sight to the features
+    d = p - c
+    lat = d - np.outer(d @ los, los)
+    lever2 = float(np.sum(lat**2)) / 2.0
+    var_depth = float(np.mean(np.einsum("i,mij,j->m", los, P, los)))
+    if not lever2 > 0.0:
+        return float("inf")
+    return float(np.sqrt(var_depth / lever2))

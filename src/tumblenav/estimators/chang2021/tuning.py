@@ -229,6 +229,21 @@ class PoseTuning(BaseModel):
         description="chi-square (3 dof) NIS gate on each of the four measurements (attitude, "
         "rate, position, velocity); rejections are counted as gated_out",
     )
+    epoch_attitude_warn_deg: float = Field(
+        5.0,
+        gt=0,
+        description="the run says (info['warnings'], summary.json) when one epoch's features "
+        "fix the attitude worse than this (deg, 1-sigma about the axes across the line of "
+        "sight, qmethod.epoch_attitude_sigma, median over the start window): the map and the "
+        "filter are linearised about an estimate that each epoch moves by more than a few "
+        "degrees, and the covariance no longer covers the drift; the truth-free divergence "
+        "check cannot see it either (its raw increments are as noisy). Measured (tumblenav's; "
+        "run 0): chang_paper point tracks ~10 m 0.49 deg, chang_features40 1.0 deg, "
+        "chang_range20 ~20 m 2.0 deg (NEES/dof 3.05, 0.15 deg accurate), chang2021 at 59 m: "
+        "point tracks 17-18 deg (diverge; the check says so), images 14.8 deg (the attitude "
+        "drifts to 50 deg with a 3-sigma of 3-6 deg and no check fails: "
+        "docs/results/consistency.md)",
+    )
     measurement_noise_scale: float = Field(
         1.0,
         gt=0,
