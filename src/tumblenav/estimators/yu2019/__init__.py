@@ -22,7 +22,10 @@ Beyond Yu 2019: the inertia ratios that the motion does not excite (a spin about
 axis) get a Schmidt (consider) update, so the EKF does not learn them from its own rate noise
 (:func:`unexcited_ratios`); while the spin axis may stay put in T, the update gets no component
 along the offset and position moved together along it, which no fix sees
-(``consider_spin_axis_offset``); docs/results/yu2019.md and docs/results/consistency.md have
+(``consider_spin_axis_offset``); once the view has turned ``start_replay_rad``, the start
+window is filtered again from the start with the inertia ratios the first pass ended with (a
+relinearisation of eq. 28 away from the sphere the filter starts at: :meth:`DepthSteps._replay`,
+``start_replays``); docs/results/yu2019.md and docs/results/consistency.md have
 the measurements behind these.
 """
 

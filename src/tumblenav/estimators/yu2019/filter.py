@@ -59,7 +59,9 @@ class DepthMemo:
     ``last_seen``: each model rectangle's view clock at its last fix (-inf: never);
     ``noise_shape``, ``noise_rate``: half the faded sums of the weights and weighted
     samples of the fixes' variance scale per component (:data:`fixes.COMPONENTS`;
-    :meth:`DepthSteps._learn_noise`)."""
+    :meth:`DepthSteps._learn_noise`); ``start``: the track's start, ``(k0, x0, P0, memo0)``,
+    kept until the start window is replayed (:meth:`DepthSteps._replay`; None: replayed, or
+    no replay)."""
 
     gated_run: int
     restarts: tuple[float, ...]
@@ -67,6 +69,7 @@ class DepthMemo:
     last_seen: tuple[float, ...]
     noise_shape: tuple[float, ...]
     noise_rate: tuple[float, ...]
+    start: tuple[int, Array, Array, DepthMemo] | None = None
 
 
 def _variance_scales(shape: Array, rate: Array) -> Array:
@@ -216,7 +219,54 @@ class DepthSteps:
             )
             e = lay.err("fix_range_bias")
             P[e, e] = (self.tun.fix_range_bias_spacings * h) ** 2
-        return Belief(float(self.meas.t[k]), x, P, lay, self._start_memo()), StepInfo()
+        memo = self._with_start(self._start_memo(), k, x, P)
+        return Belief(float(self.meas.t[k]), x, P, lay, memo), StepInfo()
+
+    def _with_start(self, memo: DepthMemo, k: int, x: Array, P: Array) -> DepthMemo:
+        """``memo`` keeping the track's start at epoch ``k`` for the start replay."""
+        if self.tun.start_replays == 0 or self.tun.start_replay_rad <= 0:
+            return memo
+        return replace(memo, start=(k, x.copy(), P.copy(), memo))
+
+    def _replay(self, belief: Belief, k1: int) -> Belief:
+        """The start window replayed (tumblenav, beyond Yu 2019): an EKF started far from the
+        truth (the inertia ratios of a sphere) linearises eq. 28 along its own changing
+        estimate and gains spurious information along the weakly observable directions of
+        the ratios (in a three-axis tumble the products of inertia froze 2-3 sigma off; cf.
+        Huang, Mourikis & Roumeliotis 2010 for EKF-SLAM). At epoch ``k1``, once the view has
+        turned ``start_replay_rad`` since the track's start ``k0`` (the view clock), the
+        filter runs again over ``k0 .. k1`` from the start's state and covariance P0 with the
+        ratios of the last pass at ``k1``: a relinearisation, as an iterated filter
+        (``start_replays`` passes). P0 stays: the prior is as loose as before around a better
+        point, so the window's data count once more only through the linearisation point
+        (the prior's 0.5 against a posterior sigma of 0.01-0.1). The estimates before ``k1``
+        stay the first pass's (causal); a pass that loses track (a restart) is dropped."""
+        memo: DepthMemo = belief.memo
+        assert memo.start is not None
+        k0, x0, P0, memo0 = memo.start
+        t = self.meas.t
+        b = belief
+        for _ in range(self.tun.start_replays):
+            x = self._relinearised_start(x0, b.x)
+            if x is None:
+                break
+            bb = Belief(float(t[k0]), x, P0.copy(), belief.layout, memo0)
+            for k in range(k0 + 1, k1 + 1):
+                bb, _ = self.update(self.predict(bb, float(t[k])), k, False)
+                if bb.memo.restarts != memo0.restarts:
+                    return replace(belief, memo=replace(memo, start=None))
+            b = bb
+        return replace(b, memo=replace(b.memo, start=None))
+
+    def _relinearised_start(self, x0: Array, x1: Array) -> Array | None:
+        """The replay's start: ``x0`` (the start's) with the inertia ratios of ``x1`` (the
+        last pass at the window's end; constants). None when those are not physical."""
+        l = x1[_X_INERTIA]
+        if not physical_inertia(l):
+            return None
+        x = x0.copy()
+        x[_X_INERTIA] = l
+        return x
 
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t
@@ -395,9 +445,13 @@ class DepthSteps:
             if fresh is not None:
                 skipped["reinitialised"] = 1
                 memo = self._start_memo(memo, float(self.meas.t[k]))
+                memo = self._with_start(memo, k, fresh.x, fresh.P)
                 return Belief(belief.t, fresh.x, fresh.P, lay, memo), StepInfo(skipped=skipped)
         info = StepInfo(nis=nis if dof else float("nan"), dof=dof, skipped=skipped)
-        return Belief(belief.t, x, P, lay, memo), info
+        out = Belief(belief.t, x, P, lay, memo)
+        if memo.start is not None and memo.clock - memo.start[3].clock >= tun.start_replay_rad:
+            out = self._replay(out, k)
+        return out, info
 
     def _learn_noise(
         self, shape: Array, rate: Array, nu_P: Array, HPH_P: Array, S_P: Array, noise

@@ -185,6 +185,32 @@ class DepthTuning(BaseModel):
         "dynamics the rate's own noise could produce (a spin about a principal axis): beyond "
         "Yu 2019, the EKF otherwise gains spurious information on them",
     )
+    start_replay_rad: float = Field(
+        4.4,
+        ge=0,
+        description="the start window replayed (filter.DepthSteps._replay; tumblenav, beyond "
+        "Yu 2019): once the view has turned this far (rad, the view clock) since the track's "
+        "start, the filter runs again over the window from the start's state and P0 with the "
+        "inertia ratios the first pass ended with (a relinearisation: an EKF started at a "
+        "sphere linearises eq. 28 along its own changing estimate and gains spurious "
+        "information on the ratios). 4.4 rad (50 s of yu_tumble); 20 runs each (python "
+        "benchmarks/consistency.py -o OUT --workers 1 --only yu_tumble_depth,yu2019_depth,"
+        "yu_outliers_depth,yu_small_10m_depth), NEES/dof before -> with it: yu_tumble 2.18 -> "
+        "1.24 (still above 1.14: run 17 alone 7.2, its replay wandered off in its first 30 "
+        "scans; inertia RMSE 0.037 -> 0.023, attitude 0.187 -> 0.236 deg), yu_outliers 1.43 "
+        "-> 1.35, yu2019 0.882 -> 0.896, yu_small_10m 0.928 -> 0.968 (attitude 0.281 -> 0.329 "
+        "deg), NIS unchanged; yu_large_50m turns less (no replay). Per block on yu_tumble, "
+        "seeds 0,1,2 (benchmarks/block_nees.py): inertia 5.03 -> 1.17, all 1.91 -> 0.78. "
+        "2.2 rad: yu_tumble 1.32. 0: no replay",
+    )
+    start_replays: int = Field(
+        1,
+        ge=0,
+        description="passes of the start replay (start_replay_rad; 0: none). yu_tumble, 20 "
+        "runs: 1 pass NEES/dof 1.24, 2 passes 1.68 (measured with the offset and [r, v] "
+        "relinearised too; the failing runs move: 13 at 12.0, 17 at 7.0; the others "
+        "0.47-1.39)",
+    )
     reinit_after_gated: int = Field(
         5,
         ge=1,
