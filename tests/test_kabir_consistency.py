@@ -172,3 +172,73 @@ def test_stencil_model_predicts_eq27_of_the_propagated_projections():
     inst = O.measurement_model(x[None], R_CI, rho0[None], np.zeros((1, 3)), cx)[0]
     np.testing.assert_allclose(h[:, 0:5], inst[:, 0:5])
     assert np.abs(h[:, 5:9] - inst[:, 5:9]).max() > 1e-4  # the truncation it models
+
+
+def test_stencil_walk_basis_matches_a_simulated_random_walk():
+    # eq. 27's rate error from a white angular acceleration, and each step's rate and attitude
+    # increments, on the two-term Legendre basis per step (kabir2025.mismatch): their
+    # covariances against a seeded simulation of the walk on a fine grid
+    from tumblenav.estimators.kabir2025 import mismatch as MM
+
+    rng = np.random.default_rng(18)
+    dt, sub, runs = 1.0, 40, 20000
+    h = dt / sub
+    dW = rng.standard_normal((runs, 4 * sub)) * np.sqrt(h)  # steps k-1 .. k+2, q = 1
+    u = (np.arange(4 * sub) + 0.5) * h  # mid-points; t_k at 2 dt
+    omega = np.cumsum(dW, axis=1) - dW / 2  # the rate at the mid-points (relative)
+    w_k = np.sum(dW[:, : 2 * sub], axis=1)  # the rate at t_k (relative to t_k-2)
+
+    def theta(a: float) -> np.ndarray:  # integral of the rate from t_k-2 to t_k-2 + a dt
+        return np.sum(omega * h * (u < a * dt), axis=1)
+
+    th = [theta(a) for a in (0.0, 1.0, 2.0, 3.0, 4.0)]  # t_k-2 .. t_k+2
+    stencil = (-th[4] + 8 * th[3] - 8 * th[1] + th[0]) / (12 * dt)
+    err = stencil - w_k  # the stencil's rate minus the rate at t_k
+    step_k = slice(sub, 2 * sub)  # step k: (t_k-1, t_k]
+    d_omega = np.sum(dW[:, step_k], axis=1)
+    d_theta = np.sum(dW[:, step_k] * (2 * dt - u[step_k]), axis=1)
+    model_err = np.sqrt(dt) / 12 * MM._WALK_COEF.ravel()  # on (xi_0, xi_1) of each step
+    model_om = np.zeros(8)
+    model_om[2] = np.sqrt(dt)
+    model_th = np.zeros(8)
+    model_th[2:4] = dt**1.5 * MM._ATT_COEF
+    sim = np.cov(np.stack([err, d_omega, d_theta]))
+    mod = np.stack([model_err, model_om, model_th])
+    np.testing.assert_allclose(sim, mod @ mod.T, rtol=0.05, atol=2e-3)
+    assert float(np.sum(MM._WALK_COEF**2)) / 144.0 == pytest.approx(T._STENCIL_WALK)
+
+
+def _block_nees(h, truth, window, block):
+    from tumblenav.evaluation.alignment import align
+
+    dx = h.layout.boxminus(align(truth, h).x, h.x)
+    ix = np.arange(h.layout.dim)[h.layout.err(block)]
+    sel = np.flatnonzero((h.t >= window[0]) & (h.t <= window[1]))[::5]
+    return float(
+        np.mean([dx[i, ix] @ np.linalg.solve(h.P[i][np.ix_(ix, ix)], dx[i, ix]) for i in sel])
+        / len(ix)
+    )
+
+
+def test_reported_covariance_is_the_actual_errors_on_kabir_geometry():
+    # kabir_geometry_observed (8 features at 20 m): the UKF's own covariance of the features
+    # is twice their error's (the Q floor is a random walk the rigid truth lacks); reported
+    # at the mismatched filter's actual covariance (covariance_report: actual) it covers
+    # their error; the estimate is the same
+    s = load_scenario("docs/results/scenarios/consistency/kabir_geometry_observed.yaml")
+    s = s.with_updates(
+        duration_s=800.0,
+        steady_state_window_s=[500.0, 800.0],
+        **{"occlusion.loss_from_s": None},
+    )
+    est = U.KabirUKF("additive")
+    truth, meas = simulate(s, 100)
+    h = est.run(s, meas, np.random.default_rng(0))
+    s_f = s.with_updates(
+        **{"estimator.tuning": {**s.estimator.tuning, "covariance_report": "filter"}}
+    )
+    f = est.run(s_f, meas, np.random.default_rng(0))
+    assert h.info["covariance_report"] == "actual"
+    np.testing.assert_array_equal(h.x, f.x)
+    assert _block_nees(f, truth, (500.0, 800.0), "features") < 0.65  # 0.48
+    assert 0.75 < _block_nees(h, truth, (500.0, 800.0), "features") < 1.35  # 0.89

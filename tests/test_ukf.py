@@ -297,8 +297,12 @@ def test_ukf_converges_from_the_papers_initial_guess():
 
 
 def test_occlusion_predicts_only_and_counts_skips():
-    s = kabir(duration=300.0, occlusion=200.0, **NEAR)
+    # the filter's own covariance (covariance_report: filter); the reported one below
+    s = kabir(duration=300.0, occlusion=200.0, covariance_report="filter", **NEAR)
     truth, meas = simulate(s, run_seed(4, 0))
+    s_a = s.with_updates(
+        **{"estimator.tuning": {**s.estimator.tuning, "covariance_report": "actual"}}
+    )
     for variant in ("additive", "mult"):
         h = U.KabirUKF(variant).run(s, meas, np.random.default_rng(0))
         occluded = h.t >= 200.0
@@ -315,6 +319,15 @@ def test_occlusion_predicts_only_and_counts_skips():
         np.testing.assert_allclose(rigid, np.broadcast_to(rigid[0], rigid.shape), atol=1e-15)
         # k and features stay (to the round-off of the weighted sigma-point mean)
         np.testing.assert_allclose(h.x[occluded, 7:], np.tile(h.x[200, 7:], (101, 1)), atol=1e-12)
+        # reported at the actual error's covariance: the same estimate, and the rigid
+        # parameters' covariance stays through the coast (kabir2025.mismatch.report_actual)
+        a = U.KabirUKF(variant).run(s_a, meas, np.random.default_rng(0))
+        np.testing.assert_array_equal(a.x, h.x)
+        rigid_a = a.P[occluded][:, 6:, 6:]
+        np.testing.assert_allclose(
+            rigid_a, np.broadcast_to(rigid_a[0], rigid_a.shape), rtol=1e-9, atol=1e-15
+        )
+        assert np.all(np.linalg.eigvalsh(a.P[occluded]) > 0)
 
 
 def test_run_ukf_takes_pseudo_measurements_with_their_own_variances(near_run):

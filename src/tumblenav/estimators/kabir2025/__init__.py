@@ -51,8 +51,12 @@ Filters
   occlusions) its rotation-vector sigma points wrap and the run diverges; it is then stopped.
 
 Both filters propagate the sigma points (RK4) and redraw them from the predicted covariance
-for the update.  A run is stopped and counted in ``skipped['diverged']`` once its state or
-covariance stops being finite or becomes absurd (see ``_MAX_STATE``); later epochs are NaN.
+for the update.  Their histories report the actual error's covariance (tuning
+``covariance_report: actual``, :mod:`~tumblenav.estimators.kabir2025.mismatch`: a covariance
+analysis of the mismatched filter, the Q floor of the rigid parameters and the flow's reuse of
+the projections' noise counted); the estimate is the filter's.  A run is stopped and counted
+in ``skipped['diverged']`` once its state or covariance stops being finite or becomes absurd
+(see ``_MAX_STATE``); later epochs are NaN.
 
 Behaviour worth knowing: the measurements are very precise (1e-5 rad) and the body frame is
 fixed only through the Euler dynamics, so from the paper's initial guess (27.8 deg, omega x
@@ -84,6 +88,7 @@ from tumblenav.estimators.base import (
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.estimators.kabir2025.filter import _filter, _history, prepare, run_ukf
 from tumblenav.estimators.kabir2025.init import error_to_filter_cov
+from tumblenav.estimators.kabir2025.mismatch import actual_covariance, report_actual
 from tumblenav.estimators.kabir2025.model import _process_noise, check_scenario, geometry
 from tumblenav.estimators.kabir2025.observations import stereo_measurements
 from tumblenav.estimators.kabir2025.tuning import parse_tuning
@@ -123,7 +128,10 @@ class KabirUKF:
         tun = parse_tuning(scenario.estimator.tuning)
         geom = geometry(scenario, measurements.t, measurements)
         z, R = stereo_measurements(measurements, tun)
-        hist = run_ukf(scenario, measurements.t, z, R, self.variant, tun, geom)
+        t = np.asarray(measurements.t, dtype=float)
+        prep = prepare(scenario, t, z, R, geom, tun)
+        hist = run_ukf(scenario, t, z, R, self.variant, tun, geom, prepared=prep)
+        _report(hist, scenario, t, z, prep, geom)
         for line in hist.info.get("warnings", []):
             warnings.warn(line, stacklevel=2)
         return hist
@@ -172,10 +180,29 @@ class KabirUKF:
             skip_first=np.array([p.start.info.get("init") == "identified" for p in preps]),
             Q=np.stack(Qs),
         )
-        return [
+        hists = [
             _history(t, res, b, self.variant, preps[b].tuning, x0s[b], preps[b])
             for b in range(len(measurements))
         ]
+        for h, z, p in zip(hists, zs, preps, strict=True):
+            _report(h, scenario, t, z, p, g0)
+        return hists
+
+
+def _report(hist: EstimateHistory, scenario: Any, t: Array, z: Array, prep: Any, geom: Any) -> None:
+    """``covariance_report: actual``: the history's covariance mapped onto the actual error's
+    (:func:`~tumblenav.estimators.kabir2025.mismatch.actual_covariance`,
+    :func:`~tumblenav.estimators.kabir2025.mismatch.report_actual`); the estimate is the
+    filter's. In place."""
+    tun = prep.tuning
+    hist.info["covariance_report"] = tun.covariance_report
+    if tun.covariance_report != "actual" or hist.P is None:
+        return
+    pn = getattr(scenario, "process_noise", None)
+    q_r = float(getattr(pn, "rotational_rad2_s4", 0.0) or 0.0)
+    walk = float(prep.derived.get("flow_process_noise_rad_s", 0.0)) ** 2
+    Pf, Pa = actual_covariance(hist, t, z, prep.R_diag, tun, geom, q_r, walk)
+    report_actual(hist, Pf, Pa, np.any(np.isfinite(z[..., 0]), axis=1))
 
 
 register("ukf")(lambda: KabirUKF("additive"))

@@ -69,6 +69,11 @@ from tumblenav.estimators.kabir2025 import gp as gpm
 from tumblenav.estimators.kabir2025 import model as ukf_model
 from tumblenav.estimators.kabir2025 import observations as ukf_obs
 from tumblenav.estimators.kabir2025 import tuning as ukf_tuning
+from tumblenav.estimators.kabir2025.mismatch import (  # shared with ukf, ukf-mult
+    floor_congruence,
+    measurement_jacobians,
+)
+from tumblenav.estimators.kabir2025.mismatch import step_jacobians as _step_jacobians
 from tumblenav.frontends import projections as proj
 from tumblenav.measurements import STEREO_TRACKS
 
@@ -222,33 +227,6 @@ def _linearisation_path(hist: EstimateHistory, t: Array, first: int) -> Array:
     return x
 
 
-def _step_jacobians(lay: Any, x: Array, t: Array, idx: NDArray[Any], ks: NDArray[Any]) -> Array:
-    """(m, d, d) Jacobians of the rigid-body step ``k-1 -> k`` (Kabir 2025 eq. 8-10,
-    :func:`~.model.propagate_rotation`) over the error components ``idx`` (rate, attitude,
-    inertia ratios), by finite differences along ``x[k-1]``; identity where ``x`` is not finite."""
-    nr, na, nk = lay.nom("rate"), lay.nom("attitude"), lay.nom("inertia")
-    d = len(idx)
-    eps = 1e-6
-    xs = x[ks - 1]
-    ok = np.all(np.isfinite(xs), axis=1)
-    dX = np.zeros((len(ks), d + 1, lay.dim))
-    dX[:, 1:, idx] = eps * np.eye(d)
-    X = lay.boxplus(np.repeat(np.where(ok[:, None], xs, 0.0)[:, None, :], d + 1, axis=1), dX)
-    dts = t[ks] - t[ks - 1]
-    F = np.repeat(np.eye(d)[None], len(ks), axis=0)
-    for dt in np.unique(dts):  # one batch per step length (one at a constant rate)
-        sel = (dts == dt) & ok
-        if not sel.any():
-            continue
-        w1, q1 = ukf_model.propagate_rotation(X[sel][..., nr], X[sel][..., na], X[sel][..., nk], dt)
-        X1 = X[sel].copy()
-        X1[..., nr] = w1
-        X1[..., na] = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
-        E = lay.boxminus(X1[:, 1:], X1[:, :1])[..., idx] / eps  # (m, perturbation j, error)
-        F[sel] = np.swapaxes(E, 1, 2)
-    return F
-
-
 def gp_motion_covariance(
     hist: EstimateHistory,
     t: Array,
@@ -326,22 +304,6 @@ def gp_motion_covariance(
         elif pseudo[k]:
             out[k] = Pa[:6, :6]
     return out
-
-
-def measurement_jacobians(
-    lay: Any, geom: Any, x: Array, ks: NDArray[Any], eps: float = 1e-7
-) -> Array:
-    """(m, N, 9, d) Jacobians of Kabir 2025 eq. 22-23 (:func:`~.observations.measurement_model`,
-    the instantaneous flow) over every error component (rate, attitude, inertia ratios,
-    features) at the states ``x`` (m, nominal) of epochs ``ks``, by finite differences."""
-    d = lay.dim
-    dX = np.zeros((len(ks), d + 1, d))
-    dX[:, 1:, :] = eps * np.eye(d)
-    X = lay.boxplus(np.repeat(x[:, None, :], d + 1, axis=1), dX)
-    h = ukf_obs.measurement_model(
-        X, geom.R_CI, geom.rho0_C[ks][:, None, :], geom.rho0_dot_C[ks][:, None, :], geom.centres_x
-    )  # (m, d + 1, N, 9)
-    return np.moveaxis((h[:, 1:] - h[:, :1]) / eps, 1, -1)
 
 
 def rigid_floor_correction(
@@ -423,19 +385,6 @@ def rigid_floor_correction(
             Pa = A @ Pa @ A.T + KRK
         Pf_out[k], Pa_out[k] = Pf, Pa
     return Pf_out, Pa_out
-
-
-def floor_congruence(Pf: Array, Pa: Array) -> Array:
-    """The symmetric positive-definite ``S`` with ``S P_f S = P_a`` (``P_f``, ``P_a`` SPD):
-    ``P_f^-1/2 (P_f^1/2 P_a P_f^1/2)^1/2 P_f^-1/2``. Applied as ``S P S`` to a covariance
-    ``P`` close to ``P_f`` it gives one close to ``P_a`` and keeps it positive definite."""
-    w, V = np.linalg.eigh(0.5 * (Pf + Pf.T))
-    w = np.maximum(w, 1e-300)
-    h = (V * np.sqrt(w)) @ V.T
-    hi = (V / np.sqrt(w)) @ V.T
-    m, U = np.linalg.eigh(h @ (0.5 * (Pa + Pa.T)) @ h)
-    mid = (U * np.sqrt(np.maximum(m, 0.0))) @ U.T
-    return hi @ mid @ hi
 
 
 def pseudo_jacobians(
