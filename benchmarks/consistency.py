@@ -52,6 +52,7 @@ def _row(case: dict, summary: dict) -> dict:
         "scenario": case["scenario"],
         "differs": case.get("differs", ""),
         "runs": summary.get("runs"),
+        "runs_without_estimate": summary.get("runs_without_estimate", 0),
         "nees": nees.get("mean"),
         "nees_bounds": nees.get("bounds95"),
         "nees_inside": inside(nees),
@@ -81,10 +82,13 @@ def table(rows: list[dict]) -> str:
             mark = "" if ok else " **out**"
             return f"{v:.3g} [{b[0]:.3g}, {b[1]:.3g}]{mark}"
 
+        runs = f"{r['runs']}"
+        if r.get("runs_without_estimate"):  # never started: the NEES is over the others
+            runs += f" ({r['runs_without_estimate']} without an estimate)"
         br = r["branches"]
         br_s = ", ".join(f"{k} {v}" for k, v in br.items()) if br else "-"
         lines.append(
-            f"| {r['estimator']} | {Path(r['scenario']).stem} | {r['differs']} | {r['runs']} "
+            f"| {r['estimator']} | {Path(r['scenario']).stem} | {r['differs']} | {runs} "
             f"| {c(r['nees'], r['nees_bounds'], r['nees_inside'])} "
             f"| {c(r['nis'], r['nis_bounds'], r['nis_inside'])} "
             f"| {_fmt(r['attitude_deg'])} | {_fmt(r['position_m'])} | {r['diverged']} | {br_s} |"
