@@ -240,7 +240,10 @@ class DepthSteps:
         (``start_replays`` passes). P0 stays: the prior is as loose as before around a better
         point, so the window's data count once more only through the linearisation point
         (the prior's 0.5 against a posterior sigma of 0.01-0.1). The estimates before ``k1``
-        stay the first pass's (causal); a pass that loses track (a restart) is dropped."""
+        stay the first pass's (causal); a pass that loses track (a restart) is dropped. With
+        ``start_replay_disagreement`` the replay's covariance takes in the passes' difference
+        at ``k1`` (a replay can wander from a good start as the first pass did from the
+        sphere: yu_tumble run 17, yu_outliers run 3)."""
         memo: DepthMemo = belief.memo
         assert memo.start is not None
         k0, x0, P0, memo0 = memo.start
@@ -255,6 +258,13 @@ class DepthSteps:
                 bb, _ = self.update(self.predict(bb, float(t[k])), k, False)
                 if bb.memo.restarts != memo0.restarts:
                     return replace(belief, memo=replace(memo, start=None))
+            if self.tun.start_replay_disagreement:
+                # the two passes ran over the same data and differ only in their
+                # linearisation: their difference measures the linearisation's error,
+                # which neither pass's covariance holds (tumblenav): the replay's
+                # covariance takes it in, d d^T along it (positive semi-definite added)
+                d = belief.layout.boxminus(b.x, bb.x)
+                bb = replace(bb, P=bb.P + np.outer(d, d))
             b = bb
         return replace(b, memo=replace(b.memo, start=None))
 
