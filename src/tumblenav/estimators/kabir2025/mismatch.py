@@ -38,6 +38,7 @@ q_r = 2.5e-13, gives 0.98 there).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -121,6 +122,24 @@ def floor_congruence(Pf: Array, Pa: Array) -> Array:
     return hi @ mid @ hi
 
 
+def filter_update(
+    Pf: Array, H_k: Array, z_k: Array, R_k: Array
+) -> tuple[NDArray[np.bool_], Array, Array, Array, Array, Array]:
+    """The filter's update at one epoch, as the analysis replays it: the usable components
+    ``rows`` (finite measurement, positive variance) of ``z_k`` (N, 9) with variances ``R_k``,
+    their Jacobian ``H`` (from ``H_k`` (N, 9, d)), the full variance vector ``R_k`` (flat),
+    the gain ``K``, ``A = I - K H`` and the filter's covariance after the update (Joseph
+    form)."""
+    d = Pf.shape[0]
+    zk, Rk = z_k.reshape(-1), R_k.reshape(-1)
+    rows = np.isfinite(zk) & np.isfinite(Rk) & (Rk > 0)
+    H = H_k.reshape(-1, d)[rows]
+    S = H @ Pf @ H.T + np.diag(Rk[rows])
+    K = np.asarray(np.linalg.solve(S, H @ Pf).T, dtype=np.float64)
+    A = np.eye(d) - K @ H
+    return rows, H, Rk, K, A, A @ Pf @ A.T + (K * Rk[rows]) @ K.T
+
+
 def _stencil_map(N: int, dt: float) -> Array:
     """(9N, 5 * 4N): the measurement noise of one epoch from the projection noise
     ``[u_R, v_R, u_L, v_L]`` of every feature at ``t_k-2 .. t_k+2``: the projections
@@ -132,6 +151,61 @@ def _stencil_map(N: int, dt: float) -> Array:
             M[i, 5 + c, :, i, c] = _STENCIL / dt
         M[i, 4, 2, i, 2], M[i, 4, 2, i, 0] = 1.0, -1.0
     return M.reshape(9 * N, 20 * N)
+
+
+@dataclass(frozen=True)
+class AnalysisSetup:
+    """What a covariance analysis of the filter along its estimate ``hist`` needs (shared by
+    :func:`actual_covariance` and ``ukf_gp.rigid_floor_correction``): the first epoch with an
+    estimate ``k0``, the estimates ``x``, the error indices of the blocks (``dyn``: rate,
+    attitude, inertia, the ones the dynamics move), the filter's Q per step split into the
+    rate/attitude part (``q_moving``) and the rigid floor (``q_rigid``), the transition
+    Jacobians ``Fd`` over ``dyn`` for the steps ``ks`` and the measurement Jacobians ``Hk`` at
+    the epochs with a real measurement (``Hof``: epoch -> row of ``Hk``)."""
+
+    k0: int
+    x: Array
+    er: NDArray[Any]
+    ea: NDArray[Any]
+    dyn: NDArray[Any]
+    q_moving: Array
+    q_rigid: Array
+    ks: NDArray[Any]
+    Fd: Array
+    Hk: Array
+    Hof: dict[int, int]
+
+
+def analysis_setup(
+    hist: EstimateHistory, t: Array, z: Array, tun: Any, geom: Any
+) -> AnalysisSetup | None:
+    """The pieces of :class:`AnalysisSetup` for ``hist`` (None: no estimate with a finite
+    covariance)."""
+    lay = hist.layout
+    n, d = len(t), lay.dim
+    if hist.P is None:
+        return None
+    okP = np.array([p is not None and np.all(np.isfinite(p)) for p in hist.P])
+    x = np.array(hist.x, dtype=float)
+    good = np.flatnonzero(okP & np.all(np.isfinite(x), axis=1))
+    if len(good) == 0:
+        return None
+    k0 = int(good[0])
+    E = np.arange(d)
+    er, ea = E[lay.err("rate")], E[lay.err("attitude")]
+    ek, ef = E[lay.err("inertia")], E[lay.err("features")]
+    dyn = np.r_[er, ea, ek]
+    q_moving, q_rigid = np.zeros(d), np.zeros(d)
+    q_moving[er] = float(tun.q_omega_var or 0.0)
+    q_moving[ea] = 4.0 * float(tun.q_quat_var or 0.0)  # per quaternion component: a quarter
+    q_rigid[ek], q_rigid[ef] = float(tun.q_k_var or 0.0), float(tun.q_feature_var or 0.0)
+    ks = np.arange(k0 + 1, n)
+    Fd = step_jacobians(lay, x, t, dyn, ks)
+    real = np.flatnonzero(np.any(np.isfinite(z[..., 0]), axis=1))
+    real = real[(real >= k0) & np.all(np.isfinite(x[real]), axis=1)]
+    Hk = measurement_jacobians(lay, geom, x[real], real)
+    Hof = dict(zip(real.tolist(), range(len(real)), strict=True))
+    return AnalysisSetup(k0, x, er, ea, dyn, q_moving, q_rigid, ks, Fd, Hk, Hof)
 
 
 def actual_covariance(
@@ -157,32 +231,13 @@ def actual_covariance(
     m = 4 * N
     Pf_out = np.full((n, d, d), np.nan)
     Pa_out = np.full((n, d, d), np.nan)
-    if hist.P is None or n < 2:
+    su = analysis_setup(hist, t, z, tun, geom) if n >= 2 else None
+    if su is None:
         return Pf_out, Pa_out
-    okP = np.array([p is not None and np.all(np.isfinite(p)) for p in hist.P])
-    x = np.array(hist.x, dtype=float)
-    good = np.flatnonzero(okP & np.all(np.isfinite(x), axis=1))
-    if len(good) == 0:
-        return Pf_out, Pa_out
-    k0 = int(good[0])
-    E = np.arange(d)
-    er, ea = E[lay.err("rate")], E[lay.err("attitude")]
-    ek, ef = E[lay.err("inertia")], E[lay.err("features")]
-    dyn = np.r_[er, ea, ek]
-    qd = np.zeros(d)
-    qd[er] = float(tun.q_omega_var or 0.0)
-    qd[ea] = 4.0 * float(tun.q_quat_var or 0.0)  # per quaternion component: a quarter of this
-    qd[ek], qd[ef] = float(tun.q_k_var or 0.0), float(tun.q_feature_var or 0.0)
-    Qf = np.diag(qd)
-    Qcoast = Qf.copy()  # no Q on the rigid parameters where nothing is measured
-    Qcoast[np.ix_(ek, ek)] = 0.0
-    Qcoast[np.ix_(ef, ef)] = 0.0
-    ks = np.arange(k0 + 1, n)
-    Fd = step_jacobians(lay, x, t, dyn, ks)
-    real = np.flatnonzero(np.any(np.isfinite(z[..., 0]), axis=1))
-    real = real[(real >= k0) & np.all(np.isfinite(x[real]), axis=1)]
-    Hk = measurement_jacobians(lay, geom, x[real], real)
-    Hof = dict(zip(real.tolist(), range(len(real)), strict=True))
+    k0, x, ks, Fd, Hk, Hof, dyn = su.k0, su.x, su.ks, su.Fd, su.Hk, su.Hof, su.dyn
+    er, ea = su.er, su.ea
+    Qf = np.diag(su.q_moving + su.q_rigid)
+    Qcoast = np.diag(su.q_moving)  # no Q on the rigid parameters where nothing is measured
     dt = float(np.median(np.diff(t)))
     Rp = R[..., 0:4]
     s2 = float(np.nanmax(Rp)) if np.isfinite(Rp).any() else 0.0  # the sensor's sigma_p^2
@@ -230,13 +285,7 @@ def actual_covariance(
         L[:d, ipw[6:12]] = G  # step k: the second of the window
         Cb = L @ Cb @ L.T
         if i is not None:
-            zk, Rk = z[k].reshape(-1), R[k].reshape(-1)
-            rows = np.isfinite(zk) & np.isfinite(Rk) & (Rk > 0)
-            H = Hk[i].reshape(-1, d)[rows]
-            S = H @ Pf @ H.T + np.diag(Rk[rows])
-            K = np.linalg.solve(S, H @ Pf).T
-            A = np.eye(d) - K @ H
-            Pf = A @ Pf @ A.T + (K * Rk[rows]) @ K.T
+            rows, H, Rk, K, A, Pf = filter_update(Pf, Hk[i], z[k], R[k])
             flow = is_flow[rows]
             white = np.where(flow, np.maximum(Rk[rows] - stencil_var - flow_walk_var, 0.0), 0.0)
             # the stencil's rate error: per axis a, its coefficients on steps k-1 .. k+2

@@ -70,8 +70,9 @@ from tumblenav.estimators.kabir2025 import model as ukf_model
 from tumblenav.estimators.kabir2025 import observations as ukf_obs
 from tumblenav.estimators.kabir2025 import tuning as ukf_tuning
 from tumblenav.estimators.kabir2025.mismatch import (  # shared with ukf, ukf-mult
+    analysis_setup,
+    filter_update,
     floor_congruence,
-    measurement_jacobians,
 )
 from tumblenav.estimators.kabir2025.mismatch import step_jacobians as _step_jacobians
 from tumblenav.frontends import projections as proj
@@ -338,30 +339,12 @@ def rigid_floor_correction(
     n, d = len(t), lay.dim
     Pf_out = np.full((n, d, d), np.nan)
     Pa_out = np.full((n, d, d), np.nan)
-    if hist.P is None:
+    su = analysis_setup(hist, t, z, tun, geom)
+    if su is None:
         return Pf_out, Pa_out
-    okP = np.array([p is not None and np.all(np.isfinite(p)) for p in hist.P])
-    good = np.flatnonzero(okP & np.all(np.isfinite(hist.x), axis=1))
-    if len(good) == 0:
-        return Pf_out, Pa_out
-    k0 = int(good[0])
-    E = np.arange(d)
-    er, ea = E[lay.err("rate")], E[lay.err("attitude")]
-    ek, ef = E[lay.err("inertia")], E[lay.err("features")]
-    dyn = np.r_[er, ea, ek]
-    qd = np.zeros(d)
-    qd[er] = float(tun.q_omega_var or 0.0)
-    qd[ea] = 4.0 * float(tun.q_quat_var or 0.0)  # per quaternion component: a quarter of this
-    Qa = np.diag(qd)
-    qd[ek], qd[ef] = float(tun.q_k_var or 0.0), float(tun.q_feature_var or 0.0)
-    Qf = np.diag(qd)
-    x = np.array(hist.x, dtype=float)
-    ks = np.arange(k0 + 1, n)
-    Fd = _step_jacobians(lay, x, t, dyn, ks)
-    real = np.flatnonzero(np.any(np.isfinite(z[..., 0]), axis=1))
-    real = real[(real >= k0) & np.all(np.isfinite(x[real]), axis=1)]
-    Hk = measurement_jacobians(lay, geom, x[real], real)
-    Hof = dict(zip(real.tolist(), range(len(real)), strict=True))
+    k0, ks, Fd, Hk, Hof, dyn = su.k0, su.ks, su.Fd, su.Hk, su.Hof, su.dyn
+    Qa = np.diag(su.q_moving)
+    Qf = np.diag(su.q_moving + su.q_rigid)
     Pf = np.array(hist.P[k0], dtype=float)
     Pa = Pf.copy()
     Pf_out[k0], Pa_out[k0] = Pf, Pa
@@ -374,15 +357,8 @@ def rigid_floor_correction(
         Pf = F @ Pf @ F.T + (Qf if i is not None else Qa)
         Pa = F @ Pa @ F.T + Qa
         if i is not None:
-            zk, Rk = z[k].reshape(-1), R[k].reshape(-1)
-            rows = np.isfinite(zk) & np.isfinite(Rk) & (Rk > 0)
-            H = Hk[i].reshape(-1, d)[rows]
-            S = H @ Pf @ H.T + np.diag(Rk[rows])
-            K = np.linalg.solve(S, H @ Pf).T
-            A = np.eye(d) - K @ H
-            KRK = (K * Rk[rows]) @ K.T
-            Pf = A @ Pf @ A.T + KRK
-            Pa = A @ Pa @ A.T + KRK
+            rows, _, Rk, K, A, Pf = filter_update(Pf, Hk[i], z[k], R[k])
+            Pa = A @ Pa @ A.T + (K * Rk[rows]) @ K.T
         Pf_out[k], Pa_out[k] = Pf, Pa
     return Pf_out, Pa_out
 
