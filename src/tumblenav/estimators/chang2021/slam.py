@@ -109,6 +109,12 @@ class MapMemo:
     resid: tuple[int, Array] | None = None  # epoch, post-step residuals (m, 3) (slip test)
 
 
+def predicted_features(x: Array, s: Array) -> Array:
+    """The measurement model ``rho_i = r + R_LThat s_i`` (m, 3) of the map points ``s`` (m,
+    3) at the pose ``x`` (module docstring)."""
+    return x[7:10] + s @ rot.quat_to_matrix(x[0:4])
+
+
 def measurement_jacobian(q_ThatL: Array, s: Array) -> tuple[Array, Array]:
     """Pose columns ``d rho_i / d [dtheta, domega, dr, dv]`` (m, 3, 12) and the feature
     block ``d rho_i / d s_i`` (3, 3) of ``rho_i = r + R_LThat s_i`` (left error)."""
@@ -393,8 +399,7 @@ class StateSteps(TrackSteps):
         if tun.slip_probability is not None and memo.resid is not None:
             # slipped tracks are re-anchored: dropped here, re-augmented from this frame below
             kp, res = memo.resid
-            R_LT = rot.quat_to_matrix(x[0:4]).T
-            e = tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T) - res[seen]
+            e = tr.p[k, ids] - predicted_features(x, s_map[:, :3]) - res[seen]
             slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], tun.slip_probability)
             slips = int(slip.sum())
             if slips:
@@ -420,7 +425,7 @@ class StateSteps(TrackSteps):
             D = P.shape[0]
             # first-estimate Jacobian (FEJ) of the attitude columns, see the module docstring
             Hp, R_LT = measurement_jacobian(x[0:4], s_map[:, 3:] if tun.fej else s_map[:, :3])
-            nu = tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T)  # (m, 3)
+            nu = tr.p[k, ids] - predicted_features(x, s_map[:, :3])  # (m, 3)
             Sig = tun.measurement_noise_scale * tr.P[k, ids]
             fcols = NP + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
             H = np.zeros((3 * m, D))
@@ -493,8 +498,7 @@ class StateSteps(TrackSteps):
         ids, s_map, P = self._augment(x, P, ids, s_map, k)
         resid = None
         if tun.slip_probability is not None:
-            R_LT = rot.quat_to_matrix(x[0:4]).T
-            resid = (k, tr.p[k, ids] - (x[7:10] + s_map[:, :3] @ R_LT.T))
+            resid = (k, tr.p[k, ids] - predicted_features(x, s_map[:, :3]))
         return Belief(
             belief.t,
             x,
