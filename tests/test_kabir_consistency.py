@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from tumblenav import rotations as rot
+from tumblenav.errors import InputError
 from tumblenav.estimators import ukf as U
 from tumblenav.estimators.kabir2025 import filter as F
+from tumblenav.estimators.kabir2025 import model as M
 from tumblenav.estimators.kabir2025 import tuning as T
 from tumblenav.evaluation import alignment
 from tumblenav.papers import kabir2025 as K
@@ -87,6 +89,48 @@ def test_explicit_tuning_far_from_the_scenario_warns_and_wins():
     r, warns = T.resolve_tuning(tun, derived)
     assert r.sigma_flow_rad_s == 1e-3 and r.q_omega_var == 1e-6
     assert len(warns) == 1 and "sigma_flow_rad_s" in warns[0]
+
+
+def test_derived_rate_q_is_the_isotropic_torques_walk_about_each_axis():
+    # the truth's disturbance (tumblenav.dynamics.disturbances): angular acceleration of PSD
+    # q_r (I_max/I_i)^2 about axis i; the filter's Q must be the same per axis, whichever axis
+    # of T carries the largest moment (the ratios k = ln(I_x/I_y), ln(I_z/I_y))
+    q_r, dt = 2.5e-9, 0.5
+    rho0 = np.array([0.0, 10.0, 0.0])
+    rho = rho0 + np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0]])
+    for inertia in ([70.0, 100.0, 130.0], [130.0, 100.0, 70.0], [100.0, 140.0, 90.0]):
+        k = np.log([inertia[0] / inertia[1], inertia[2] / inertia[1]])
+        d = T.derive_tuning(
+            np.array([0.1, 0.05, 0.1]), k, np.array([0.1, 0.05, 0.1]), rho, rho0,
+            np.array([0.0, 0.5]), dt, 1e-5, q_r,
+        )  # fmt: skip
+        want = q_r * (max(inertia) / np.array(inertia)) ** 2 * dt
+        np.testing.assert_allclose(d["q_omega_var"], want, rtol=1e-12)
+        # the filter's Q carries them on the rate's diagonal, both variants
+        tun = T.parse_tuning({"mass_centre_L_m": [0, 10, 0]})
+        tun, _ = T.resolve_tuning(tun, d)
+        for variant in ("additive", "mult"):
+            np.testing.assert_allclose(np.diag(M._process_noise(tun, 3, variant))[:3], want)
+
+
+@pytest.mark.parametrize("bad", [[1e-9, 1e-9], [1e-9, -1e-9, 1e-9], -1e-9, [1e-9, float("nan"), 0]])
+def test_rate_q_takes_one_value_or_three_non_negative(bad):
+    with pytest.raises(InputError, match="q_omega_var"):
+        T.parse_tuning({"mass_centre_L_m": [0, 10, 0], "q_omega_var": bad})
+    ok = T.parse_tuning({"mass_centre_L_m": [0, 10, 0], "q_omega_var": [1e-9, 2e-9, 3e-9]})
+    np.testing.assert_allclose(T.rate_q(ok.q_omega_var), [1e-9, 2e-9, 3e-9])
+    np.testing.assert_allclose(T.rate_q(2e-9), [2e-9] * 3)
+
+
+def test_explicit_per_axis_rate_q_far_on_one_axis_warns_naming_it():
+    tun = T.parse_tuning({"mass_centre_L_m": [0, 10, 0], "q_omega_var": [1e-9, 1e-9, 1e-7]})
+    derived = {"q_omega_var": [1e-9, 2e-9, 3e-9], "q_quat_var": 1e-7, "sigma_flow_rad_s": 1e-5}
+    r, warns = T.resolve_tuning(tun, derived)
+    assert r.q_omega_var == [1e-9, 1e-9, 1e-7]
+    assert len(warns) == 1 and "q_omega_var" in warns[0] and "axis z" in warns[0]
+    # one explicit value for every axis, within 10x of each: no warning
+    tun = T.parse_tuning({"mass_centre_L_m": [0, 10, 0], "q_omega_var": 2e-9})
+    assert T.resolve_tuning(tun, derived)[1] == []
 
 
 def test_identified_start_covers_its_error_and_filter_is_consistent():

@@ -484,7 +484,7 @@ class Prepared:
     start: KabirStart
     tuning: KabirTuning
     R_diag: Array
-    derived: dict[str, float]
+    derived: dict[str, Any]
     warnings: list[str]
 
 

@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 from tumblenav.estimators.base import EstimateHistory
 from tumblenav.estimators.kabir2025 import model as ukf_model
 from tumblenav.estimators.kabir2025 import observations as ukf_obs
+from tumblenav.estimators.kabir2025.tuning import rate_q
 
 Array = NDArray[np.float64]
 
@@ -196,7 +197,7 @@ def analysis_setup(
     ek, ef = E[lay.err("inertia")], E[lay.err("features")]
     dyn = np.r_[er, ea, ek]
     q_moving, q_rigid = np.zeros(d), np.zeros(d)
-    q_moving[er] = float(tun.q_omega_var or 0.0)
+    q_moving[er] = rate_q(tun.q_omega_var)
     q_moving[ea] = 4.0 * float(tun.q_quat_var or 0.0)  # per quaternion component: a quarter
     q_rigid[ek], q_rigid[ef] = float(tun.q_k_var or 0.0), float(tun.q_feature_var or 0.0)
     ks = np.arange(k0 + 1, n)

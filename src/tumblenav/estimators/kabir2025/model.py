@@ -20,7 +20,7 @@ from tumblenav.estimators.base import (
 )
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.estimators.kabir2025 import kernels
-from tumblenav.estimators.kabir2025.tuning import KabirTuning
+from tumblenav.estimators.kabir2025.tuning import KabirTuning, rate_q
 from tumblenav.frontends import projections as proj
 
 Array = NDArray[np.float64]
@@ -244,10 +244,11 @@ def _process_noise(tun: KabirTuning, N: int, variant: Variant) -> Array:
     qw, qq = tun.q_omega_var, tun.q_quat_var
     if qw is None or qq is None:
         raise ValueError("Q not resolved: call tuning.resolve_tuning first")
+    qw3 = rate_q(qw).tolist()  # per principal axis of T (derive_tuning)
     if variant == "additive":
-        v = [qw] * 3 + [qq] * 4
+        v = qw3 + [qq] * 4
     else:
-        v = [qw] * 3 + [4.0 * qq] * 3
+        v = qw3 + [4.0 * qq] * 3
     qk, qf = tun.q_k_var or 0.0, tun.q_feature_var or 0.0  # null: derived, 0 (rigid body)
     return np.diag(v + [qk] * 2 + [qf] * (3 * N))
 

@@ -101,11 +101,13 @@ class KabirTuning(BaseModel):
     p0_quat_var: float = Field(0.04, gt=0, description="per quaternion component")
     p0_k_var: float = Field(0.01, gt=0, description="initial variance of each log-ratio k")
     p0_feature_var: float = Field(2.25, gt=0, description="m^2")
-    q_omega_var: float | None = Field(
+    q_omega_var: float | list[float] | None = Field(
         None,
-        ge=0,
-        description="rad^2/s^2 per step; default (null): derived from the scenario's "
-        "process_noise.rotational_rad2_s4 and the sample interval (derive_tuning)",
+        description="rad^2/s^2 per step: one number for every axis (Kabir 2025 Sec. 3.2), or "
+        "three, one per principal axis of T (x, y, z); default (null): derived per axis from "
+        "the scenario's process_noise.rotational_rad2_s4, the estimated inertia ratios and "
+        "the sample interval (derive_tuning: q_r (I_max/I_i)^2 dt, the isotropic torque's "
+        "rate walk about each axis)",
     )
     q_quat_var: float | None = Field(
         None,
@@ -199,6 +201,17 @@ class KabirTuning(BaseModel):
         "inertia 0.62 -> 1.14, rate 1.17 -> 1.12, attitude 1.12 -> 1.15 ('filter' on seeds "
         "0-9). ukf-gp reports its own (ukf_gp.rigid_floor_correction)",
     )
+
+    @field_validator("q_omega_var")
+    @classmethod
+    def _per_axis(cls, v: float | list[float] | None) -> float | list[float] | None:
+        """A non-negative number, or three (one per axis)."""
+        if v is None:
+            return v
+        vals = [v] if isinstance(v, (int, float)) else list(v)
+        if not (len(vals) in (1, 3) and all(np.isfinite(x) and x >= 0 for x in vals)):
+            raise ValueError("must be a non-negative number or a list of three (x, y, z)")
+        return v
 
     @field_validator("sigma_p_rad", "sigma_d_rad", mode="before")
     @classmethod
@@ -332,7 +345,7 @@ def derive_tuning(
     sigma_p: float,
     rotational_psd: float,
     flow_model: str = "stencil",
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Q and ``sigma_o`` from what the estimator knows (tumblenav default, issue 18).
 
     Parameters: its initial rate ``omega_T`` (rad/s, in T) and log-ratios ``k``, the same rate
@@ -341,10 +354,15 @@ def derive_tuning(
     scenario's ``process_noise.rotational_rad2_s4`` (q_r, rad^2/s^3: white angular
     acceleration about the first principal axis, isotropic torque).
 
-    * ``q_omega_var = q_r (I_1/I_i)^2 dt``, the largest over the three axes (a random walk of
-      the rate over one step; ``I_1`` of the first axis, the ratios from ``k``).
+    * ``q_omega_var = q_r (I_max/I_i)^2 dt`` about each principal axis ``i`` of T (three
+      values: the isotropic torque's random walk of the rate over one step, the ratios from
+      ``k``; :mod:`tumblenav.dynamics.disturbances`). Until session 26 this was one value,
+      ``q_r (I_1/I_i)^2 dt`` maximised over ``i`` with ``I_1`` the moment of T's x axis: where
+      that axis is the smallest (kabir2025) every axis got ``q_r dt``, 1.55-3.45x too little
+      about the smaller moments.
     * ``q_quat_var``: the attitude's share of the same random walk over one step,
-      ``q_r dt^3 / 3`` rad^2, plus the RK4 propagation's own error squared
+      ``q_r dt^3 / 3`` rad^2 (mean over the three axes: one value per quaternion component
+      keeps the trace), plus the RK4 propagation's own error squared
       (:func:`rk4_attitude_error` after the substeps of ``propagate_rotation``), mapped to
       one quaternion component (``dq = dtheta / 2``: a quarter).
     * ``q_k_var``, ``q_feature_var``: a floor only. The body is rigid (constant inertia,
@@ -363,8 +381,9 @@ def derive_tuning(
       initial rate and geometry (the ``stencil`` model predicts it).
     """
     m = np.exp(np.array([k[0], 0.0, k[1]], dtype=float))
-    ratio2 = float(np.max((m[0] / m) ** 2))
-    q_omega = rotational_psd * ratio2 * dt
+    ratio2_axes = (np.max(m) / m) ** 2  # (I_max / I_i)^2
+    ratio2 = float(np.mean(ratio2_axes))
+    q_omega = rotational_psd * ratio2_axes * dt
     wn = float(np.linalg.norm(omega_T))
     from tumblenav.estimators.kabir2025.model import rk4_substeps
 
@@ -380,7 +399,7 @@ def derive_tuning(
     s_feat = _FLOOR_FRACTION * sigma_p * rng
     sigma_o = np.sqrt(noise**2 + walk**2 + (0.0 if modelled else trunc**2))
     return {
-        "q_omega_var": float(q_omega),
+        "q_omega_var": [float(v) for v in q_omega],
         "q_quat_var": float(q_att / 4.0),
         "q_k_var": float((s_feat / lever) ** 2) if lever > 0 else 0.0,
         "q_feature_var": float(s_feat**2),
@@ -391,12 +410,24 @@ def derive_tuning(
     }
 
 
-def resolve_tuning(tun: KabirTuning, derived: dict[str, float]) -> tuple[KabirTuning, list[str]]:
+def _shown(v: float | list[float]) -> str:
+    """A tuning value as a warning prints it."""
+    if isinstance(v, (int, float)):
+        return f"{v:.3g}"
+    return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+
+
+def rate_q(q_omega_var: float | list[float] | None) -> Array:
+    """``q_omega_var`` as three per-axis values (rad^2/s^2 per step; null: zeros)."""
+    return np.broadcast_to(np.asarray(q_omega_var or 0.0, dtype=float), (3,)).copy()
+
+
+def resolve_tuning(tun: KabirTuning, derived: dict[str, Any]) -> tuple[KabirTuning, list[str]]:
     """``tun`` with every unset (null) Q / sigma_o key replaced by its derived value, and a
     warning for each explicit one more than 10x from what the scenario implies."""
     keys = ("q_omega_var", "q_quat_var", "sigma_flow_rad_s")
     warnings_: list[str] = []
-    update: dict[str, float] = {}
+    update: dict[str, Any] = {}
     for key in ("q_k_var", "q_feature_var"):  # the paper's small floors: no warning
         if getattr(tun, key) is None:
             update[key] = derived.get(key, 0.0)
@@ -406,16 +437,24 @@ def resolve_tuning(tun: KabirTuning, derived: dict[str, float]) -> tuple[KabirTu
         if given is None:
             update[key] = want
             continue
-        if want > 0 and given > 0:
-            r = given / want
-            if r > _FAR or r < 1.0 / _FAR:
-                warnings_.append(
-                    f"estimator.tuning.{key} = {given:.3g} is {r:.3g}x what the scenario implies "
-                    f"({want:.3g}: derived from the initial rate, dt, process_noise and eq. 27's "
-                    "truncation error); leave it unset to use the derived value"
-                )
-        elif want > 0 and given == 0 or (given > 0 and want == 0 and key != "sigma_flow_rad_s"):
+        per_axis = key == "q_omega_var"
+        g = rate_q(given) if per_axis else np.array([float(given)])
+        w = rate_q(want) if per_axis else np.array([float(want)])
+        shown_g, shown_w = _shown(given), _shown(want)
+        both = (w > 0) & (g > 0)
+        r = np.where(both, g / np.where(w > 0, w, 1.0), 1.0)
+        worst = int(np.argmax(np.abs(np.log(r))))
+        axis = f" (axis {'xyz'[worst]})" if per_axis and len(set(r.tolist())) > 1 else ""
+        if r[worst] > _FAR or r[worst] < 1.0 / _FAR:
             warnings_.append(
-                f"estimator.tuning.{key} = {given:.3g} where the scenario implies {want:.3g}"
+                f"estimator.tuning.{key} = {shown_g} is {r[worst]:.3g}x what the scenario "
+                f"implies{axis} ({shown_w}: derived from the initial rate, dt, process_noise "
+                "and eq. 27's truncation error); leave it unset to use the derived value"
+            )
+        elif np.any((w > 0) & (g == 0)) or (
+            np.any((g > 0) & (w == 0)) and key != "sigma_flow_rad_s"
+        ):
+            warnings_.append(
+                f"estimator.tuning.{key} = {shown_g} where the scenario implies {shown_w}"
             )
     return tun.model_copy(update=update), warnings_

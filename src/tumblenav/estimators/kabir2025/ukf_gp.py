@@ -530,7 +530,7 @@ def gp_error_model(
         pn = getattr(scenario, "process_noise", None)
         q_r = float(getattr(pn, "rotational_rad2_s4", 0.0) or 0.0)
     else:
-        q_r = float(tun_r.q_omega_var or 0.0) / dt
+        q_r = float(np.min(ukf_tuning.rate_q(tun_r.q_omega_var))) / dt  # the largest moment
     Da = np.zeros((n, 6, 6))
     if q_r > 0:
         # the sensor's resolution on the attitude at one epoch (the fit's "measurement")
