@@ -401,3 +401,48 @@ def test_epoch_attitude_sigma_matches_a_monte_carlo_of_depth_noise():
     th = np.linalg.lstsq(A, noise.T, rcond=None)[0]  # (2, 4000)
     rms = float(np.sqrt(np.mean(th**2)))
     assert abs(rms / sig - 1.0) < 0.05
+
+
+def test_noise_at_the_predicted_point_does_not_lean_to_points_measured_near():
+    # One point at 20 m seen 40 000 times with 0.5 px noise (chang_range20's rig): weighting
+    # each triangulated point by its covariance at the measured point (Sigma ~ depth^4) pulls
+    # the weighted mean towards the camera by ~4 sigma_y^2 / y; weighted at a fixed point
+    # (the filter's prediction) the mean keeps only the triangulation's own second-order bias
+    # (+sigma_y^2 / y, away from the camera).
+    from tumblenav.estimators.chang2021.measurements import point_covariance
+    from tumblenav.frontends.triangulation import triangulate_two_ray
+
+    sc = load_scenario("docs/results/scenarios/consistency/chang_range20.yaml").with_updates(
+        duration_s=1.0, steady_state_window_s=[0.0, 1.0]
+    )
+    _, meas = simulate(sc, 0)
+    rig = meas.rig
+    cams = rig.cameras
+    p_true = np.array([0.3, 20.0, -0.2])  # in C (depth along y)
+    uv = []
+    for c in cams:
+        pk = c.R_CkC @ (p_true - c.p_CkinC)
+        uv.append(c.focal_px * pk[[0, 2]] / pk[1] + np.asarray(c.principal_point_px))
+    rng = np.random.default_rng(7)
+    n, s = 40000, 0.5
+    uvl = uv[0] + s * rng.standard_normal((n, 2))
+    uvr = uv[1] + s * rng.standard_normal((n, 2))
+    f = np.array([c.focal_px for c in cams])
+    pp = np.array([c.principal_point_px for c in cams], float)
+    p = triangulate_two_ray(
+        uvl, uvr, f, pp, cams[0].R_CkC, cams[0].p_CkinC, cams[1].R_CkC, cams[1].p_CkinC
+    )
+    q = rot.IDENTITY  # L = C
+    P_meas = point_covariance(p, q, rig, s**2)
+    P_pred = point_covariance(np.tile(p_true, (n, 1)), q, rig, s**2)
+    sig_y2 = float(P_pred[0, 1, 1])
+
+    def weighted_mean(P):
+        W = np.linalg.inv(P)
+        return np.linalg.solve(W.sum(0), np.einsum("nij,nj->i", W, p))
+
+    bias_meas = weighted_mean(P_meas)[1] - p_true[1]
+    bias_pred = weighted_mean(P_pred)[1] - p_true[1]
+    se = np.sqrt(sig_y2 / n)  # the mean's own noise
+    assert bias_meas < -2.0 * sig_y2 / p_true[1] and bias_meas < -5 * se
+    assert abs(bias_pred - sig_y2 / p_true[1]) < 4 * se

@@ -68,7 +68,11 @@ from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
 from tumblenav.estimators.chang2021.filter import TrackSteps
 from tumblenav.estimators.chang2021.init import Start
-from tumblenav.estimators.chang2021.measurements import FeatureTracks
+from tumblenav.estimators.chang2021.measurements import (
+    FeatureTracks,
+    pixel_variance,
+    point_covariance,
+)
 from tumblenav.estimators.chang2021.model import (
     error_jacobian,
     process_noise_density,
@@ -253,6 +257,11 @@ class StateSteps(TrackSteps):
     layout: StateLayout = LAYOUT_POSE
 
     @functools.cached_property
+    def s2(self) -> float:
+        """The tracks' pixel noise variance (px^2)."""
+        return pixel_variance(self.meas)
+
+    @functools.cached_property
     def age(self) -> IntArray:
         """(n, N): epochs each track has been observed in a row up to and including k."""
         ok = self.tracks.ok_p
@@ -425,8 +434,13 @@ class StateSteps(TrackSteps):
             D = P.shape[0]
             # first-estimate Jacobian (FEJ) of the attitude columns, see the module docstring
             Hp, R_LT = measurement_jacobian(x[0:4], s_map[:, 3:] if tun.fej else s_map[:, :3])
-            nu = tr.p[k, ids] - predicted_features(x, s_map[:, :3])  # (m, 3)
-            Sig = tun.measurement_noise_scale * tr.P[k, ids]
+            pred = predicted_features(x, s_map[:, :3])
+            nu = tr.p[k, ids] - pred  # (m, 3)
+            Sig = tr.P[k, ids]
+            if tun.noise_at == "predicted":  # not leaning to the points measured too near
+                Sig_p = point_covariance(pred, self.meas.q_CL[k], self.meas.rig, self.s2)
+                Sig = np.where(np.isfinite(Sig_p), Sig_p, Sig)
+            Sig = tun.measurement_noise_scale * Sig
             fcols = NP + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
             H = np.zeros((3 * m, D))
             H[:, :NP] = Hp.reshape(3 * m, NP)

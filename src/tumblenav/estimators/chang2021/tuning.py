@@ -244,6 +244,15 @@ class PoseTuning(BaseModel):
         "drifts to 50 deg with a 3-sigma of 3-6 deg and no check fails: "
         "docs/results/consistency.md)",
     )
+    noise_at: Literal["predicted", "measured"] = Field(
+        "predicted",
+        description="map: state: where each triangulated feature's covariance is evaluated in "
+        "the update: 'predicted' (tumblenav default, issue 18) at the filter's predicted point "
+        "r + R_LThat s_i, 'measured' at the triangulated point. The triangulation covariance "
+        "grows as the depth^4, so weights taken at the measured points lean to the points "
+        "measured too near and bias the mass centre towards the camera (~ -4 sigma_depth^2 / "
+        "depth; measurements.point_covariance)",
+    )
     measurement_noise_scale: float = Field(
         1.0,
         gt=0,
