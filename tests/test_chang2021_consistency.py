@@ -10,7 +10,7 @@ import pytest
 from tumblenav import rotations as rot
 from tumblenav.estimators.base import get
 from tumblenav.estimators.chang2021.filter import disturbance_rate_noise
-from tumblenav.estimators.chang2021.slam import StateSteps, measurement_jacobian
+from tumblenav.estimators.chang2021.slam import NA, StateSteps, measurement_jacobian
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation.alignment import truth_state
@@ -84,9 +84,9 @@ def test_start_rate_is_the_line_at_k0_and_the_axis_is_released():
     assert var >= tun.prior_mass_centre_sigma_m**2 > 10 * var0
     N = np.zeros(b.P.shape[0])
     N[6:9] = u_L
-    N[12:] = np.tile(-u_T, len(b.memo.ids))
+    N[NA:] = np.tile(-u_T, len(b.memo.ids))  # the features come after the inertia (12:17)
     Hp, R_LT = measurement_jacobian(b.x[0:4], b.memo.s)
-    HN = Hp @ N[:12] + (R_LT @ N[12:].reshape(-1, 3).T).T
+    HN = Hp @ N[:12] + (R_LT @ N[NA:].reshape(-1, 3).T).T
     assert np.abs(HN).max() < 1e-12
     assert np.allclose(b.P - b0.P, tun.prior_mass_centre_sigma_m**2 * np.outer(N, N))
 

@@ -29,7 +29,7 @@ from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, regis
 from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
 from tumblenav.estimators.chang2021.model import LAYOUT
 from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
-from tumblenav.estimators.chang2021.slam import LAYOUT_POSE, MapMemo, StateSteps
+from tumblenav.estimators.chang2021.slam import LAYOUT_POSE, MapMemo, StateSteps, inertia_of
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.measurements import STEREO_TRACKS
@@ -79,12 +79,19 @@ class PoseEKF:
                 f"ekf-pose needs stereo feature tracks; scenario {scenario.name} has a "
                 f"{scenario.sensor.kind} sensor"
             )
-        parse_tuning(scenario.estimator.tuning, PoseTuning)
+        tun = parse_tuning(scenario.estimator.tuning, PoseTuning)
+        if tun.inertia == "estimated" and tun.map != "state" and "inertia" in tun.model_fields_set:
+            raise InputError(
+                "ekf-pose: estimator.tuning.inertia 'estimated' needs map: state (the inertia "
+                "is learnt with the feature map in the state)"
+            )
 
     def run(self, scenario: Any, meas: Any, rng: np.random.Generator) -> EstimateHistory:
         scenario = context_from_scenario(scenario)  # never the target's truth
         self.check(scenario)
         tun = parse_tuning(scenario.estimator.tuning, PoseTuning)
+        if tun.map != "state" and tun.inertia == "estimated":  # the default: map: state's
+            tun = tun.model_copy(update={"inertia": "sphere"})
         orbit = scenario.chaser.orbit
         n = float(orbit.mean_motion_rad_s) if orbit is not None else 0.0
         pn = scenario.process_noise  # the mission's disturbance assumption (never the truth)
@@ -111,6 +118,14 @@ class PoseEKF:
             )
             if tun.map == "registered":
                 info["map_origin_L_k0"] = [float(v) for v in s.origin_L_k0]
+            j = getattr(r.memo, "j", None)
+            if tun.inertia == "estimated" and j is not None:
+                # the last estimate: the tensor in That (mean moment 1) and, frame-free, its
+                # principal moments over the largest
+                J = inertia_of(j)
+                ev = np.linalg.eigvalsh(J)
+                info["inertia_That"] = J.tolist()
+                info["inertia_principal_ratios"] = [float(v) for v in ev[::-1] / ev.max()]
             sig = _start_attitude_sigma_deg(steps.tracks, s.k0, s.k)
             info["epoch_attitude_sigma_deg"] = sig
             if sig > tun.epoch_attitude_warn_deg:

@@ -132,9 +132,18 @@ class TrackSteps:
         a = self.tun.accel_noise_m2_s3
         return float(self.q_trans if a is None else a)
 
-    def rate_noise(self, x: Array) -> float:
-        """The rate random walk's spectral density at ``x`` (:func:`rate_process_noise`)."""
-        return rate_process_noise(x, self.tun, self.n_orbit, self.q_rate_dist)
+    def rate_noise(self, x: Array, inertia: Array | None = None) -> float:
+        """The rate random walk's spectral density at ``x`` (:func:`rate_process_noise`); with
+        inertia 'estimated' the disturbance's share from the current estimate ``inertia``."""
+        q_dist = self.q_rate_dist
+        if (
+            self.tun.inertia == "estimated"
+            and inertia is not None
+            and self.tun.rate_noise_rad2_s3 is None
+        ):
+            ev = np.linalg.eigvalsh(inertia)
+            q_dist = float(self.q_rot * np.mean((ev.max() / ev) ** 2))
+        return rate_process_noise(x, self.tun, self.n_orbit, q_dist)
 
     @functools.cached_property
     def tracks(self) -> FeatureTracks:

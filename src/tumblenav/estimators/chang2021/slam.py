@@ -55,6 +55,7 @@ The belief's ``x`` is the 13-component pose (the reported layout :data:`LAYOUT_P
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -75,6 +76,7 @@ from tumblenav.estimators.chang2021.measurements import (
 )
 from tumblenav.estimators.chang2021.model import (
     error_jacobian,
+    omega_LI_L,
     process_noise_density,
     propagate_mean,
 )
@@ -92,6 +94,17 @@ LAYOUT_POSE = StateLayout(
 )
 NP = 12  # pose error dimension
 NX = 13  # pose nominal dimension
+NI = 5  # inertia parameters (inertia: estimated; zero covariance otherwise)
+NA = NP + NI  # where the features start in P
+_J = slice(NP, NA)
+# J = I + D(j), D symmetric and traceless (the scale is not observable): j = (a, b, d, e, f),
+# D = [[a, d, e], [d, b, f], [e, f, -a - b]]
+_J_BASIS = np.zeros((NI, 3, 3))
+_J_BASIS[0, 0, 0], _J_BASIS[0, 2, 2] = 1.0, -1.0
+_J_BASIS[1, 1, 1], _J_BASIS[1, 2, 2] = 1.0, -1.0
+for _i, (_r, _c) in enumerate(((0, 1), (0, 2), (1, 2))):
+    _J_BASIS[2 + _i, _r, _c] = _J_BASIS[2 + _i, _c, _r] = 1.0
+_J_MIN = 0.05  # smallest principal moment kept (of a mean moment 1)
 _A, _W, _R, _V = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 _MAX_SIGMA = 1e6
 
@@ -111,6 +124,40 @@ class MapMemo:
     check: tuple[int, Array, Array] | None = None  # last check epoch, q_ThatL, P_att there
     fails: int = 0  # failed divergence checks in a row
     resid: tuple[int, Array] | None = None  # epoch, post-step residuals (m, 3) (slip test)
+    j: Array = dataclasses.field(default_factory=lambda: np.zeros(NI))  # inertia parameters
+
+
+def inertia_of(j: Array) -> Array:
+    """The inertia (3, 3) in That, normalised to a mean moment of 1, of the parameters ``j``."""
+    return np.eye(3) + np.einsum("p,pij->ij", j, _J_BASIS)
+
+
+def inertia_params(J: Array) -> Array:
+    """``j`` of a symmetric positive-definite ``J`` (3, 3) (normalised first), its principal
+    moments kept at or above ``_J_MIN`` of their mean: the estimate stays a body's."""
+    lam, V = np.linalg.eigh(0.5 * (J + J.T))
+    for _ in range(20):  # the floor is relative to the mean, which the floor raises
+        floor = _J_MIN * max(float(np.mean(lam)), 1e-12)
+        if lam.min() >= floor * (1.0 - 1e-9):
+            break
+        lam = np.maximum(lam, floor)
+    J = (V * lam) @ V.T
+    J = 3.0 * J / np.trace(J)
+    return np.array([J[0, 0] - 1.0, J[1, 1] - 1.0, J[0, 1], J[0, 2], J[1, 2]])
+
+
+def euler_inertia_jacobian(q_ThatL: Array, omega: Array, j: Array, n: float) -> Array:
+    """``d(domega/dt) / dj`` (3, 5) of Chang 2021 eq. 3 (``rate_derivative``) over the inertia
+    parameters: with ``g = J^-1 (-w_ti x J w_ti)``, ``J g = -w_ti x J w_ti`` differentiates to
+    ``dg = J^-1 (-w_ti x (E_p w_ti) - E_p g)`` for the basis matrix ``E_p`` of ``j_p``
+    (tumblenav's; checked against central differences in the tests)."""
+    J = inertia_of(j)
+    a = rot.quat_to_matrix(q_ThatL) @ omega_LI_L(n)
+    w_ti = omega + a
+    g = np.linalg.solve(J, -np.cross(w_ti, J @ w_ti))
+    Ew = _J_BASIS @ w_ti  # (5, 3)
+    rhs = -np.cross(w_ti, Ew) - _J_BASIS @ g  # (5, 3)
+    return np.asarray(np.linalg.solve(J, rhs.T), dtype=float)
 
 
 def predicted_features(x: Array, s: Array) -> Array:
@@ -170,7 +217,7 @@ def _keep(P: Array, s: Array, keep: NDArray[np.bool_]) -> tuple[Array, Array]:
     if keep.all():
         return P, s
     rows = np.concatenate(
-        [np.arange(NP), (NP + 3 * np.flatnonzero(keep)[:, None] + np.arange(3)).ravel()]
+        [np.arange(NA), (NA + 3 * np.flatnonzero(keep)[:, None] + np.arange(3)).ravel()]
     )
     return P[np.ix_(rows, rows)], s[keep]
 
@@ -293,6 +340,7 @@ class StateSteps(TrackSteps):
         P[_V, _V] = (s.P[_V, _V].trace() / 3 + (w * sig) ** 2) * np.eye(3)
         if self.tun.start_replay:
             return self._replay(s, x, P)
+        P = self._with_inertia(P)
         ids, s_map, P = self._augment(x, P, np.zeros(0, np.int64), np.zeros((0, 6)), k)
         memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
         return Belief(float(self.meas.t[k]), x, P, LAYOUT_POSE, memo), StepInfo()
@@ -319,7 +367,7 @@ class StateSteps(TrackSteps):
             P[_W, _W] = s.P_omega_k0 * self.tun.start_rate_inflation
         P[_R, _R] = P_end[_R, _R]
         P[_V, _V] = P_end[_V, _V]
-        P0 = P
+        P0 = self._with_inertia(P)
         b: Belief | None = None
         for _ in range(self.tun.start_passes):
             if b is not None:  # relinearise: the last pass's mass centre at k1, back to k0
@@ -333,6 +381,22 @@ class StateSteps(TrackSteps):
                     return None, StepInfo(skipped={"initialising": 1})
         assert b is not None
         return self._release_axis(b), StepInfo()
+
+    def _with_inertia(self, P: Array) -> Array:
+        """The pose covariance (12, 12) with the inertia parameters' prior (17, 17): with
+        inertia 'estimated' each of the five has the variance inertia_asymmetry^2 about the
+        sphere (moments that differ by that fraction), else zero (not estimated)."""
+        out = np.zeros((NA, NA))
+        out[:NP, :NP] = P
+        if self.tun.inertia == "estimated":
+            out[_J, _J] = self.tun.inertia_asymmetry**2 * np.eye(NI)
+        return out
+
+    def inertia_matrix(self, memo: MapMemo) -> Array:
+        """The dynamics' inertia: the estimate (inertia 'estimated') or the tuning's."""
+        if self.tun.inertia == "estimated":
+            return inertia_of(memo.j)
+        return self.inertia
 
     def _release_axis(self, b: Belief) -> Belief:
         """The mass centre along the rotation axis gets its prior's variance back
@@ -353,7 +417,7 @@ class StateSteps(TrackSteps):
         u_T = w / nw
         N = np.zeros(b.P.shape[0])
         N[_R] = rot.quat_to_matrix(x[0:4]).T @ u_T
-        N[NP:] = np.tile(-u_T, len(memo.ids))
+        N[NA:] = np.tile(-u_T, len(memo.ids))
         P = b.P + self.tun.prior_mass_centre_sigma_m**2 * np.outer(N, N)
         return Belief(b.t, x, P, LAYOUT_POSE, memo)
 
@@ -362,15 +426,20 @@ class StateSteps(TrackSteps):
         if dt <= 0.0:
             return belief
         x16 = np.concatenate([belief.x, np.zeros(3)])
-        q_rate = self.rate_noise(x16)
-        F = error_jacobian(x16, self.inertia, self.n_orbit)[:NP, :NP]
-        Qc = process_noise_density(q_rate, self.q_accel)[:NP, :NP]
+        J = self.inertia_matrix(belief.memo)
+        q_rate = self.rate_noise(x16, J)
+        F = np.zeros((NA, NA))
+        F[:NP, :NP] = error_jacobian(x16, J, self.n_orbit)[:NP, :NP]
+        if self.tun.inertia == "estimated":
+            F[_W, _J] = euler_inertia_jacobian(x16[0:4], x16[4:7], belief.memo.j, self.n_orbit)
+        Qc = np.zeros((NA, NA))
+        Qc[:NP, :NP] = process_noise_density(q_rate, self.q_accel)[:NP, :NP]
         Phi, Qd = discretise(F, Qc, dt)
-        x = propagate_mean(x16, dt, self.inertia, self.n_orbit)[:NX]
+        x = propagate_mean(x16, dt, J, self.n_orbit)[:NX]
         P = belief.P.copy()
-        P[:NP, :] = Phi @ P[:NP, :]
-        P[:, :NP] = P[:, :NP] @ Phi.T
-        P[:NP, :NP] += Qd
+        P[:NA, :] = Phi @ P[:NA, :]
+        P[:, :NA] = P[:, :NA] @ Phi.T
+        P[:NA, :NA] += Qd
         return Belief(t, x, 0.5 * (P + P.T), LAYOUT_POSE, belief.memo)
 
     def _augment(
@@ -396,6 +465,7 @@ class StateSteps(TrackSteps):
     def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
         x, P, memo = belief.x, belief.P, belief.memo
         ids, s_map = memo.ids, np.hstack([memo.s, memo.s0])  # (m, 6): current, first
+        j = memo.j
         if started:
             return belief, StepInfo()
         tr, tun = self.tracks, self.tun
@@ -428,7 +498,17 @@ class StateSteps(TrackSteps):
                 x,
                 P,
                 LAYOUT_POSE,
-                MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, memo.check, memo.fails),
+                MapMemo(
+                    ids,
+                    s_map[:, :3],
+                    s_map[:, 3:],
+                    memo.start,
+                    wild,
+                    memo.check,
+                    memo.fails,
+                    None,
+                    j,
+                ),
             ), StepInfo(skipped=skipped)
         else:
             D = P.shape[0]
@@ -441,7 +521,7 @@ class StateSteps(TrackSteps):
                 Sig_p = point_covariance(pred, self.meas.q_CL[k], self.meas.rig, self.s2)
                 Sig = np.where(np.isfinite(Sig_p), Sig_p, Sig)
             Sig = tun.measurement_noise_scale * Sig
-            fcols = NP + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
+            fcols = NA + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
             H = np.zeros((3 * m, D))
             H[:, :NP] = Hp.reshape(3 * m, NP)
             rows = np.arange(3 * m).reshape(m, 3)
@@ -475,7 +555,9 @@ class StateSteps(TrackSteps):
                 P = 0.5 * (P + P.T)
                 dx = K @ nuk
                 x = LAYOUT_POSE.boxplus(x, dx[:NP])
-                s_map[:, :3] += dx[NP:].reshape(m, 3)
+                if tun.inertia == "estimated":
+                    j = inertia_params(inertia_of(j + dx[_J]))
+                s_map[:, :3] += dx[NA:].reshape(m, 3)
                 w = np.linalg.solve(L, nuk)
                 nis, dof = float(w @ w), len(nuk)
                 # rejected features leave the state (suspect tracks)
@@ -518,7 +600,7 @@ class StateSteps(TrackSteps):
             x,
             P,
             LAYOUT_POSE,
-            MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, check, fails, resid),
+            MapMemo(ids, s_map[:, :3], s_map[:, 3:], memo.start, wild, check, fails, resid, j),
         ), (StepInfo(nis=nis, dof=dof, rejected=rejected, skipped=skipped))
 
     def report(self, belief: Belief, k: int) -> Array:

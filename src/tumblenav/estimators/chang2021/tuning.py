@@ -125,13 +125,19 @@ class PoseTuning(BaseModel):
     min_features: int = Field(
         3, ge=3, description="fewest matched features for a pose measurement (q-method: 3)"
     )
-    inertia: Literal["sphere", "given"] = Field(
-        "sphere",
+    inertia: Literal["sphere", "given", "estimated"] = Field(
+        "estimated",
         description="target inertia in the dynamics (eq. 3): 'sphere' (unknown: torque-free "
         "with omega_TI constant in the body; the Euler-torque mismatch goes into the rate "
-        "process noise, see inertia_asymmetry) or 'given' (inertia_kg_m2, a prior expressed in "
+        "process noise, see inertia_asymmetry), 'given' (inertia_kg_m2, a prior expressed in "
         "the estimator's frame That: meaningful only when That is the principal frame, i.e. "
-        "with the paper's truth-based start)",
+        "with the paper's truth-based start) or 'estimated' (tumblenav default, issue 18; "
+        "map: state only, map: registered falls back to 'sphere'): the inertia tensor in "
+        "That, up to scale, as five states started at the sphere with a 1-sigma of "
+        "inertia_asymmetry each, learnt from the nutation through eq. 3 (with 'sphere' the "
+        "nutation, a deterministic drift of the rate, is a random walk to the filter: rate "
+        "NEES/dof 0.3-0.4 and position 1.9-3 on chang_inertia; measured in "
+        "docs/results/consistency.md)",
     )
     inertia_kg_m2: list[float] | list[list[float]] = Field(
         [1.0, 1.0, 1.0],
@@ -271,8 +277,9 @@ class PoseTuning(BaseModel):
         return v
 
     def inertia_matrix(self) -> Array:
-        """The dynamics' inertia (3, 3): identity for 'sphere'."""
-        if self.inertia == "sphere":
+        """The dynamics' inertia (3, 3): identity for 'sphere' (and the start of
+        'estimated')."""
+        if self.inertia != "given":
             return np.eye(3)
         a = np.asarray(self.inertia_kg_m2, dtype=float)
         I = np.diag(a) if a.ndim == 1 else a
