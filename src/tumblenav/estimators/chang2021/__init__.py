@@ -65,7 +65,8 @@ class PoseEKF:
     consumes: tuple[str, ...] = (STEREO_TRACKS,)
     needs = (
         "stereo feature tracks (any calibrated rig; Chang 2021 uses a convergent one); the "
-        "chaser's orbit (CW) or none; the target's inertia is not needed (inertia: sphere)"
+        "chaser's orbit (CW) or none; the target's inertia is not needed (estimated from "
+        "the nutation, inertia: estimated)"
     )
     description = (
         "Chang 2021: triangulation, q-method attitude, eq. 29 rate and eq. 30 centroid -> EKF "

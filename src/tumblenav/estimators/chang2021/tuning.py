@@ -147,9 +147,10 @@ class PoseTuning(BaseModel):
     inertia_asymmetry: float = Field(
         0.3,
         ge=0,
-        description="with inertia 'sphere': RMS over the axes of |I_j - I_k| / I_i of the "
-        "unknown target (<= 1 for any body; 0.3: moments that differ by tens of percent). "
-        "The unmodelled Euler term has per-axis RMS ~ k |omega|^2 / 3 and correlation time "
+        description="RMS over the axes of |I_j - I_k| / I_i of the unknown target (<= 1 for "
+        "any body; 0.3: moments that differ by tens of percent). With inertia 'estimated': the "
+        "1-sigma of each inertia parameter about the sphere at the start. With 'sphere': the "
+        "unmodelled Euler term has per-axis RMS ~ k |omega|^2 / 3 and correlation time "
         "~ 1/|omega|, so the rate random walk gets the spectral density "
         "2 k^2 |omega_TI|^3 / 27 (rad^2/s^3), from the current rate estimate",
     )
@@ -160,7 +161,8 @@ class PoseTuning(BaseModel):
         "per axis of That; added to the Euler term of inertia 'sphere'). None (default): "
         "derived from the scenario's process_noise.rotational_rad2_s4 q_r (about the axis of "
         "largest moment): q_r times the mean over the axes of (I_max/I_i)^2, i.e. (1 + "
-        "inertia_asymmetry)^2 with inertia 'sphere', from inertia_kg_m2 with 'given'",
+        "inertia_asymmetry)^2 with inertia 'sphere', from inertia_kg_m2 with 'given', from "
+        "the current estimate with 'estimated'",
     )
     accel_noise_m2_s3: float | None = Field(
         None,
