@@ -27,7 +27,7 @@ observable, so nothing is measured twice.
   unobservable), is ``J = I + D(j)`` with ``D`` symmetric and traceless, and its five
   parameters ``j`` follow the pose in ``P`` (rows 12-16, before the features; the mean travels
   in the memo as the map does). They start at the sphere (``j = 0``) with a 1-sigma of
-  ``inertia_asymmetry`` each, have no process noise (a rigid body), and enter eq. 3 through
+  ``inertia_sigma`` (0.1) each, have no process noise (a rigid body), and enter eq. 3 through
   ``d(domega/dt)/dj`` (:func:`euler_inertia_jacobian`). Why: with a sphere, the nutation
   (a deterministic drift of the body rate) is a random walk to the filter, the rate is
   conservative and the errors it leaves are taken up by the mass centre (chang_inertia per
@@ -395,12 +395,12 @@ class StateSteps(TrackSteps):
 
     def _with_inertia(self, P: Array) -> Array:
         """The pose covariance (12, 12) with the inertia parameters' prior (17, 17): with
-        inertia 'estimated' each of the five has the variance inertia_asymmetry^2 about the
+        inertia 'estimated' each of the five has the variance inertia_sigma^2 about the
         sphere (moments that differ by that fraction), else zero (not estimated)."""
         out = np.zeros((NA, NA))
         out[:NP, :NP] = P
         if self.tun.inertia == "estimated":
-            out[_J, _J] = self.tun.inertia_asymmetry**2 * np.eye(NI)
+            out[_J, _J] = self.tun.inertia_sigma**2 * np.eye(NI)
         return out
 
     def inertia_matrix(self, memo: MapMemo) -> Array:

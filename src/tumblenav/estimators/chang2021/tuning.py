@@ -134,7 +134,7 @@ class PoseTuning(BaseModel):
         "with the paper's truth-based start) or 'estimated' (tumblenav default, issue 18; "
         "map: state only, map: registered falls back to 'sphere'): the inertia tensor in "
         "That, up to scale, as five states started at the sphere with a 1-sigma of "
-        "inertia_asymmetry each, learnt from the nutation through eq. 3 (with 'sphere' the "
+        "inertia_sigma each, learnt from the nutation through eq. 3 (with 'sphere' the "
         "nutation, a deterministic drift of the rate, is a random walk to the filter: rate "
         "NEES/dof 0.3-0.4 and position 1.9-3 on chang_inertia; measured in "
         "docs/results/consistency.md)",
@@ -144,12 +144,22 @@ class PoseTuning(BaseModel):
         description="with inertia 'given': principal moments [I1, I2, I3] or the 3x3 tensor "
         "in That (kg m^2; only ratios matter)",
     )
+    inertia_sigma: float = Field(
+        0.1,
+        gt=0,
+        description="with inertia 'estimated': the 1-sigma of each of the five inertia "
+        "parameters about the sphere at the start (J = I + D, D traceless; tumblenav "
+        "default). Wider lets the first, noisy epochs move the estimate beyond the EKF's "
+        "linear reach: on rendered images (chang2021_close run 3) 0.3 ran to principal "
+        "ratios 1 / 0.55 / 0.06 and 5 deg of attitude error, 0.1 to 1 / 0.84 / 0.66 (truth "
+        "1 / 0.83 / 0.67) and 0.27 deg; on point tracks chang_inertia (moments 0.29 from the "
+        "sphere) converges from either",
+    )
     inertia_asymmetry: float = Field(
         0.3,
         ge=0,
         description="RMS over the axes of |I_j - I_k| / I_i of the unknown target (<= 1 for "
-        "any body; 0.3: moments that differ by tens of percent). With inertia 'estimated': the "
-        "1-sigma of each inertia parameter about the sphere at the start. With 'sphere': the "
+        "any body; 0.3: moments that differ by tens of percent). With inertia 'sphere': the "
         "unmodelled Euler term has per-axis RMS ~ k |omega|^2 / 3 and correlation time "
         "~ 1/|omega|, so the rate random walk gets the spectral density "
         "2 k^2 |omega_TI|^3 / 27 (rad^2/s^3), from the current rate estimate",
