@@ -82,9 +82,15 @@ def disturbance_rate_noise(tun: PoseTuning, q_r: float) -> float:
     if tun.rate_noise_rad2_s3 is not None:
         return float(tun.rate_noise_rad2_s3)
     if tun.inertia == "given":
-        ev = np.linalg.eigvalsh(tun.inertia_matrix())
-        return float(q_r * np.mean((ev.max() / ev) ** 2))
+        return torque_rate_noise(q_r, tun.inertia_matrix())
     return float(q_r * (1.0 + tun.inertia_asymmetry) ** 2)
+
+
+def torque_rate_noise(q_r: float, inertia: Array) -> float:
+    """``q_r`` times the mean over the principal axes of ``(I_max / I_i)^2`` of ``inertia``
+    (3, 3): the isotropic torque's rate random walk as one value per axis of That."""
+    ev = np.linalg.eigvalsh(inertia)
+    return float(q_r * np.mean((ev.max() / ev) ** 2))
 
 
 def rate_process_noise(x: Array, tun: PoseTuning, n: float, q_dist: float = 0.0) -> float:
@@ -141,8 +147,7 @@ class TrackSteps:
             and inertia is not None
             and self.tun.rate_noise_rad2_s3 is None
         ):
-            ev = np.linalg.eigvalsh(inertia)
-            q_dist = float(self.q_rot * np.mean((ev.max() / ev) ** 2))
+            q_dist = torque_rate_noise(self.q_rot, inertia)
         return rate_process_noise(x, self.tun, self.n_orbit, q_dist)
 
     @functools.cached_property
