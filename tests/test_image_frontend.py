@@ -462,6 +462,8 @@ def test_track_images_gives_stereo_measurements():
     ds = meas.to_dataset("test")  # round trip through the file format
     back = StereoMeasurements.from_dataset(ds)
     assert np.array_equal(back.observed, meas.observed)
+    # the front end states its tracks' slide; the file keeps it
+    assert back.slide_px2_per_frame == meas.slide_px2_per_frame > 0.0
     with pytest.raises(InputError):
         track_images(iter(frames[:5]), t, rig, q, q, 0.5)
     with pytest.raises(InputError):

@@ -400,6 +400,10 @@ BAD = {
         lambda d: _tracks(d, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", chaser={"q_CL": [0, 0, 0, 1]}),
         ["calibration.yaml", "chaser", "missing key orbit"],
     ),
+    "negative slide": (
+        lambda d: _tracks(d, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", slide_px2_per_frame=-0.01),
+        ["calibration.yaml", "slide_px2_per_frame must be >= 0"],
+    ),
     "empty cloud": (lambda d: _clouds(d, empty=True), ["b.pcd", "empty point cloud", "row 3"]),
     "duplicate epoch": (lambda d: _clouds(d, dup=True), ["clouds.csv", "row 3", "duplicate"]),
     "image size": (
@@ -439,6 +443,17 @@ def test_one_camera_sightings_drop_or_keep(tmp_path: Path, capsys):
     assert obs[1, :, 1].tolist() == [1, 0]
     code, _, err = _cli(["import", kind, str(path), "-o", str(tmp_path / "b")], capsys)
     assert code == 2 and "not empty" in err  # never over an existing result
+
+
+def test_tracks_state_their_slide(tmp_path: Path, capsys):
+    """slide_px2_per_frame in the calibration reaches measurements.nc (0 when absent)."""
+    kind, path = _tracks(tmp_path, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", slide_px2_per_frame=0.006)
+    assert _cli(["import", kind, str(path), "-o", str(tmp_path / "a")], capsys)[0] == 0
+    ds = io.read_netcdf(tmp_path / "a" / "measurements.nc")
+    assert ds.attrs["slide_px2_per_frame"] == 0.006
+    _write_cal(tmp_path)
+    assert _cli(["import", kind, str(path), "-o", str(tmp_path / "b")], capsys)[0] == 0
+    assert io.read_netcdf(tmp_path / "b" / "measurements.nc").attrs["slide_px2_per_frame"] == 0.0
 
 
 @pytest.mark.parametrize("suffix", ["ply", "pcd"])

@@ -43,6 +43,9 @@ ATTRIBUTES: dict[str, str] = {
     "rig": "`parallel` or `convergent`",
     "baseline_m": "distance between the centres of projection (m)",
     "noise_px": "1-sigma noise on each of u and v (px); the estimators weight by it",
+    "slide_px2_per_frame": "how fast a track slides over the surface, as a random walk across "
+    "the line of sight (px^2 per frame, each of u and v; 0: tracks that stay on their points); "
+    "ekf-pose lets its map points walk by it",
     "camera_model": "the projection that gives `uv` from points in the camera frames",
     "sensor": "the sensor and its boresight",
     "fov_rad": "square field of view (rad)",

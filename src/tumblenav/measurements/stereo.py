@@ -22,6 +22,12 @@ class StereoMeasurements:
     uv : (n, 2, N, 2) px -- [time, camera (0 left, 1 right), feature, (u, v)], NaN if unseen.
     observed : (n, 2, N) bool -- explicit visibility mask.
     q_CL : (n, 4) -- rig attitude (known to the chaser); q_LI : (n, 4) -- LVLH attitude.
+    noise_px : 1-sigma noise on each of u and v (px) the estimators weight by.
+    slide_px2_per_frame : how fast a track slides over the surface, as a random walk (px^2 per
+        frame, each of u and v; 0: tracks that stay on their surface point, e.g. simulated
+        corners). A tracker that follows a rotating patch frame to frame (LK) slides as the
+        track ages; an estimator that keeps the tracks' surface points as a map (ekf-pose)
+        lets each map point walk by this much per frame.
     """
 
     t: Array
@@ -31,6 +37,7 @@ class StereoMeasurements:
     q_LI: Array
     rig: sensors.StereoRig
     noise_px: float
+    slide_px2_per_frame: float = 0.0
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
         from tumblenav.io import with_coordinates
@@ -65,6 +72,7 @@ class StereoMeasurements:
                 "rig": rig.kind,
                 "baseline_m": rig.baseline_m,
                 "noise_px": self.noise_px,
+                "slide_px2_per_frame": self.slide_px2_per_frame,
                 "camera_model": CAMERA_MODEL,
             },
         )
@@ -81,6 +89,7 @@ class StereoMeasurements:
             q_LI=np.asarray(ds["q_LI"].values, dtype=float),
             rig=rig,
             noise_px=float(ds.attrs.get("noise_px", np.nan)),
+            slide_px2_per_frame=float(ds.attrs.get("slide_px2_per_frame", 0.0)),
         )
 
 

@@ -133,6 +133,26 @@ def point_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
     return np.where(ok[:, None, None], P_L, np.nan)
 
 
+def slide_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
+    """The covariance (m, 3, 3) in L of points at ``p_L`` (m, 3) moved across the left
+    camera's line of sight by ``s2`` px^2 in each of its u and v at their depth ``y``:
+    ``s2 (y / f)^2`` along the left camera's x and z axes, nothing along its optical axis.
+
+    Why (tumblenav, issue 18): a track that slides over the surface moves its point in both
+    images alike (the right match follows the left patch), so the triangulated point slides
+    across the line of sight; :func:`point_covariance` with the same pixel variance would put
+    it in depth, where independent noise in the two images goes."""
+    f, _, R, o = _rig_arrays(rig)
+    R_CL = rot.quat_to_matrix(q_CL)
+    p0 = (np.asarray(p_L, float) @ R_CL.T - o[0]) @ R[0].T  # in the left camera
+    y = p0[:, 1]
+    lateral = np.diag([1.0, 0.0, 1.0])  # the left camera's x and z (y: optical axis)
+    M = R[0].T @ lateral @ R[0]  # in C
+    M_L = R_CL.T @ M @ R_CL
+    scale = np.where(y > 0.0, s2 * (y / f[0]) ** 2, 0.0)
+    return scale[:, None, None] * M_L[None]
+
+
 def feature_tracks(meas) -> FeatureTracks:
     """Positions, velocities and covariances of every stereo-observed feature of a run, in L
     (module docstring). Vectorised over epochs and features; NaN never leaks into ``ok``."""

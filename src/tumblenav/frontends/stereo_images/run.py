@@ -127,6 +127,13 @@ def track_images(
         observed[e][:, i] = True
     track_length = observed[:, 0].sum(axis=0).astype(np.int64)
     meas = StereoMeasurements(
-        t=t, uv=uv, observed=observed, q_CL=q_CL, q_LI=q_LI, rig=rig, noise_px=float(noise_px)
+        t=t,
+        uv=uv,
+        observed=observed,
+        q_CL=q_CL,
+        q_LI=q_LI,
+        rig=rig,
+        noise_px=float(noise_px),
+        slide_px2_per_frame=float(tuning.track_slide_px2_per_frame),
     )
     return meas, FrontEndStats.from_frames(stats, track_length)

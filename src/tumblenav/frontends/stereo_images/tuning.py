@@ -174,6 +174,25 @@ class ImageFrontEndTuning(BaseModel):
         "side of where its previous depth puts it on the new epipolar line",
     )
 
+    track_slide_px2_per_frame: float = Field(
+        0.006,  # tumblenav's, measured (Chang 2021 silent); see the description
+        ge=0.0,
+        description="what the front end states of its tracks' slide over the surface, as a "
+        "random walk across the line of sight (px^2 per frame, each of u and v; the tracks' "
+        "slide_px2_per_frame): ekf-pose lets each map point walk by it "
+        "(slam.StateSteps.map_walk). Measured on chang2021_close rendered images (5 Hz, 1 deg "
+        "of tumble per frame, lk_window_px 5, runs 0-1 of the campaign's seeds; each track's "
+        "triangulated point in T against its first sighting, truth poses, in px of the left "
+        "camera's x / z; a session script, 2026-11-25): robust sigma 0.272 / 0.138 px at age "
+        "1, 0.394 / 0.229 at 10, 0.559 / 0.320 at 20, 0.763 / 0.414 at 30, 1.147 / 0.753 at 58 "
+        "frames; the variance's growth over the first ten frames, 0.0090 / 0.0037 px^2 per "
+        "frame, averaged over the two axes. Later the slide runs faster than a walk (0.022 / "
+        "0.0096 px^2 per frame up to age 58): the front end's max_age_frames bounds it. It "
+        "grows with the tumble per frame and the LK window: measure your own tracks' slide "
+        "with benchmarks/image_frontend.py (drift med px at ages 10 / 30 / 60). 0: the tracks "
+        "are taken as white noise about fixed surface points",
+    )
+
     @model_validator(mode="after")
     def _consistent(self) -> ImageFrontEndTuning:
         if self.n_min > self.n_max:
