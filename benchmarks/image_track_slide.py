@@ -26,7 +26,7 @@ import numpy as np
 
 from tumblenav import rotations as rot
 from tumblenav.campaign.store import run_seed
-from tumblenav.estimators.chang2021.measurements import _rig_arrays, feature_tracks
+from tumblenav.estimators.chang2021.measurements import feature_tracks
 from tumblenav.frontends import stages
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate
@@ -40,7 +40,8 @@ def slides(sc, k: int, ages: tuple[int, ...]) -> dict[int, list]:
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
     tracks, _ = stages.prepare(meas, ("stereo_tracks",), sc.sensor.images.frontend)
     tr = feature_tracks(tracks)
-    f, _, R, o = _rig_arrays(tracks.rig)
+    left = tracks.rig.left
+    f, R0, o0 = left.focal_px, left.R_CkC, left.p_CkinC
     p_T = np.einsum("nji,nmj->nmi", truth.R_LT, tr.p - truth.r_L[:, None, :])  # R_TL (p - r)
     out: dict[int, list] = {a: [] for a in ages}
     for j in range(tr.ok_p.shape[1]):
@@ -54,9 +55,9 @@ def slides(sc, k: int, ages: tuple[int, ...]) -> dict[int, list]:
                 kk = ks[a]
                 R_CL = rot.quat_to_matrix(tracks.q_CL[kk])
                 d_C = R_CL @ (truth.R_LT[kk] @ (p_T[kk, j] - p_T[ks[0], j]))
-                d0 = R[0] @ d_C  # in the left camera
-                depth = ((R_CL @ tr.p[kk, j] - o[0]) @ R[0].T)[1]
-                out[a].append(np.array([d0[0], d0[2], d0[1]]) * f[0] / depth)
+                d0 = R0 @ d_C  # in the left camera
+                depth = R0[1] @ (R_CL @ tr.p[kk, j] - o0)
+                out[a].append(np.array([d0[0], d0[2], d0[1]]) * f / depth)
     return out
 
 

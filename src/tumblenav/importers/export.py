@@ -138,11 +138,7 @@ def export_tracks(
     keys = {
         **stereo_calibration_keys(meas.rig, camera_axes, pixel_origin),
         "noise_px": float(meas.noise_px),
-        **(
-            {"slide_px2_per_frame": float(meas.slide_px2_per_frame)}
-            if getattr(meas, "slide_px2_per_frame", 0.0)
-            else {}
-        ),
+        **({"slide_px2_per_frame": meas.slide_px2_per_frame} if meas.slide_px2_per_frame else {}),
         "one_camera_sightings": "keep",
         "chaser": _chaser_keys(scenario, folder, meas.t, q_C0L, meas.q_LI),
     }

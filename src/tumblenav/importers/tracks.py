@@ -16,6 +16,7 @@ from tumblenav.errors import InputError
 from tumblenav.importers.calibration import (
     Context,
     StereoCalibration,
+    _number,
     load_context,
     stereo_calibration,
 )
@@ -160,17 +161,9 @@ def tracks_measurements(
         ) from None
     if not (np.isfinite(noise_px) and noise_px > 0):
         raise InputError(f"noise_px must be > 0 px, got {noise}", where)
-    slide = cfg.get("slide_px2_per_frame", 0.0)
-    try:
-        slide_px2 = float(slide)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"bad key slide_px2_per_frame: {slide!r} (the tracks' slide over the surface, "
-            "px^2 per frame; 0 or absent: none)",
-            where,
-        ) from None
-    if not (np.isfinite(slide_px2) and slide_px2 >= 0):
-        raise InputError(f"slide_px2_per_frame must be >= 0 px^2 per frame, got {slide}", where)
+    slide_px2 = _number(cfg, "slide_px2_per_frame", where, 0.0)  # absent: tracks that stay
+    if slide_px2 < 0:
+        raise InputError(f"slide_px2_per_frame must be >= 0 px^2 per frame, got {slide_px2}", where)
     ctx = load_context(cfg, where, Path(path).parent, t, cal.axes, t_offset)
     R = cal.R_CC0
     if np.array_equal(R, np.eye(3)):

@@ -142,14 +142,12 @@ def slide_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
     images alike (the right match follows the left patch), so the triangulated point slides
     across the line of sight; :func:`point_covariance` with the same pixel variance would put
     it in depth, where independent noise in the two images goes."""
-    f, _, R, o = _rig_arrays(rig)
+    cam = rig.left
     R_CL = rot.quat_to_matrix(q_CL)
-    p0 = (np.asarray(p_L, float) @ R_CL.T - o[0]) @ R[0].T  # in the left camera
-    y = p0[:, 1]
-    lateral = np.diag([1.0, 0.0, 1.0])  # the left camera's x and z (y: optical axis)
-    M = R[0].T @ lateral @ R[0]  # in C
-    M_L = R_CL.T @ M @ R_CL
-    scale = np.where(y > 0.0, s2 * (y / f[0]) ** 2, 0.0)
+    y = (np.asarray(p_L, float) @ R_CL.T - cam.p_CkinC) @ cam.R_CkC[1]  # left depth
+    R_LCl = R_CL.T @ cam.R_CkC.T  # left camera -> L
+    M_L = R_LCl @ np.diag([1.0, 0.0, 1.0]) @ R_LCl.T  # its x and z (y: optical axis)
+    scale = np.where(y > 0.0, s2 * (y / cam.focal_px) ** 2, 0.0)
     return scale[:, None, None] * M_L[None]
 
 
