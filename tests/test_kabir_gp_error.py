@@ -39,6 +39,7 @@ def model(variant):
             "q_k_var": 1e-6,
             "q_feature_var": 1e-6,
             "sigma_flow_rad_s": 1e-5,
+            "update_chart": "body",  # a consider update stays in it: compared alike
         }
     )
     return F._UKFModel.make(24 if variant == "additive" else 23, 5, geometry(3), tun, variant)

@@ -200,6 +200,7 @@ def test_paper_tuning_per_frequency_and_bad_input():
         "q_feature_var": 1e-6,
         "flow_model": "instantaneous",
         "use_disparity": True,
+        "update_chart": "body",  # the paper's filter updates in its own chart
     }
     assert K.tumbling_frequency_hz(kabir(0.125)) == pytest.approx(0.125)
     with pytest.raises(InputError, match="0.1 Hz"):

@@ -201,7 +201,8 @@ def _report(hist: EstimateHistory, scenario: Any, t: Array, z: Array, prep: Any,
     pn = getattr(scenario, "process_noise", None)
     q_r = float(getattr(pn, "rotational_rad2_s4", 0.0) or 0.0)
     walk = float(prep.derived.get("flow_process_noise_rad_s", 0.0)) ** 2
-    Pf, Pa = actual_covariance(hist, t, z, prep.R_diag, tun, geom, q_r, walk)
+    world = tun.update_chart == "world"
+    Pf, Pa = actual_covariance(hist, t, z, prep.R_diag, tun, geom, q_r, walk, world)
     report_actual(hist, Pf, Pa, np.any(np.isfinite(z[..., 0]), axis=1))
 
 

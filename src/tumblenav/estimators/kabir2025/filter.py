@@ -32,6 +32,7 @@ from tumblenav.estimators.kabir2025.model import (
     geometry,
     layout,
     propagate_rotation_compiled,
+    world_chart_points,
 )
 from tumblenav.estimators.kabir2025.observations import (
     measurement_model,
@@ -213,13 +214,23 @@ class _UKFModel:
         ut, geom, N = self.ut, self.geom, self.N
         B, M, d = x.shape[0], 9 * N, P.shape[-1]
         diag = np.arange(M)
-        X, off, rep = self.sigma(x, P)
+        # the update's chart (update_chart): 'world' for every run whose rigid parameters
+        # are updated (a consider update keeps them, so it stays in the body chart)
+        world = np.zeros(B, dtype=bool)
+        if self.tun.update_chart == "world":
+            world = np.ones(B, dtype=bool) if consider is None else ~np.asarray(consider)
+        rep = np.zeros(B, dtype=bool)
+        if world.any():
+            x, P, rep = self._change_chart(x, P, world, to_world=True)
+        X, off, rep_s = self.sigma(x, P)
+        rep |= rep_s
+        Xb = world_chart_points(X, world, to_world=False) if world.any() else X
         if self.tun.flow_model == "stencil" and np.any(rows.reshape(B, N, 9)[..., 5:]):
             Z = stencil_measurement_model_compiled(
-                X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x, self.dt
+                Xb, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x, self.dt
             )
         else:
-            Z = measurement_model(X, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x)
+            Z = measurement_model(Xb, geom.R_CI, geom.rho0_C[k], geom.rho0_dot_C[k], geom.centres_x)
         Z = Z.reshape(B, -1, M)
         zh = ut.Wm @ Z
         dZ = Z - zh[:, None, :]
@@ -258,11 +269,45 @@ class _UKFModel:
             G = np.broadcast_to(np.eye(d), P.shape).copy()
             G[:, 3:6, 3:6] += 0.5 * rot.skew(dx[:, 3:6])
             P = G @ P @ np.swapaxes(G, -1, -2)
+        if world.any():
+            x, P, rep_b = self._change_chart(x, P, world, to_world=False)
+            rep |= rep_b
         x, P = canonical_axes(x, P, self.additive)
         if not self.additive:
             P = _cap_attitude(P)
         nis = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
         return x, P, nis, rows.sum(1), rejected, rep
+
+    def _change_chart(
+        self, x: Array, P: Array, runs: NDArray[np.bool_], to_world: bool
+    ) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """The mean and covariance of ``runs`` in the other chart
+        (:func:`~.model.world_chart_points`): the mean is the centre point's image (the charts are one bijection, so a round trip
+        returns the same mean), the covariance the spread of the transformed sigma points
+        about it (the first-order map J P J^T, to fourth order in the spread)."""
+        ut = self.ut
+        off, rep = ut.offsets(P)
+        X = x[:, None, :] + off if self.additive else _boxplus(x[:, None, :], off)
+        Y = world_chart_points(X, runs, to_world)
+        y = Y[:, 0]
+        if self.additive:
+            D = Y - y[:, None, :]
+        else:
+            D = np.concatenate(
+                [
+                    Y[..., 0:3] - y[:, None, 0:3],
+                    rot.boxminus_fast(Y[..., 3:7], y[:, None, 3:7]),
+                    Y[..., 7:] - y[:, None, 7:],
+                ],
+                axis=-1,
+            )
+        Pn = ut.cov(D, D)
+        Pn = 0.5 * (Pn + np.swapaxes(Pn, -1, -2))
+        return (
+            np.where(runs[:, None], y, x),
+            np.where(runs[:, None, None], Pn, P),
+            rep & runs,
+        )
 
 
 def _filter(

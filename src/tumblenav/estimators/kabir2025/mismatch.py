@@ -94,6 +94,48 @@ def step_jacobians(lay: Any, x: Array, t: Array, idx: NDArray[Any], ks: NDArray[
     return F
 
 
+def predicted_states(lay: Any, x: Array, t: Array, ks: NDArray[Any]) -> Array:
+    """(m, nominal) the rigid-body step ``k-1 -> k`` of ``x[k-1]`` (the filter's prediction of
+    the mean, :func:`~.model.propagate_rotation`); NaN where ``x[k-1]`` is not finite."""
+    nr, na, nk = lay.nom("rate"), lay.nom("attitude"), lay.nom("inertia")
+    xs = np.array(x[ks - 1], dtype=float)
+    ok = np.all(np.isfinite(xs), axis=1)
+    dts = t[ks] - t[ks - 1]
+    out = np.full_like(xs, np.nan)
+    for dt in np.unique(dts):
+        sel = (dts == dt) & ok
+        if not sel.any():
+            continue
+        w1, q1 = ukf_model.propagate_rotation(xs[sel][:, nr], xs[sel][:, na], xs[sel][:, nk], dt)
+        y = xs[sel].copy()
+        y[:, nr] = w1
+        y[:, na] = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
+        out[sel] = y
+    return out
+
+
+def world_jacobians(lay: Any, x: Array, eps: float = 1e-6) -> Array:
+    """(m, d, d) Jacobians of the world chart's error (:func:`~.model.world_chart_points`:
+    rate and features in I, attitude and inertia ratios as they are) on the body chart's at
+    the states ``x`` (m, nominal), by central differences; identity where ``x`` is not
+    finite."""
+    d = lay.dim
+    ok = np.all(np.isfinite(x), axis=1)
+    x0 = np.where(ok[:, None], x, 0.0)
+    x0[~ok, lay.nom("attitude")] = [0.0, 0.0, 0.0, 1.0]  # a placeholder
+    dX = np.concatenate([eps * np.eye(d), -eps * np.eye(d)])
+    X = lay.boxplus(
+        np.repeat(x0[:, None, :], 2 * d, axis=1), np.broadcast_to(dX, (len(x), 2 * d, d))
+    )
+    runs = np.ones(len(x), dtype=bool)
+    W = ukf_model.world_chart_points(X, runs, to_world=True)
+    W0 = ukf_model.world_chart_points(x0[:, None, :], runs, to_world=True)
+    E = lay.boxminus(W, np.broadcast_to(W0, W.shape))  # (m, 2d, d)
+    J = np.swapaxes((E[:, :d] - E[:, d:]) / (2 * eps), 1, 2)
+    J[~ok] = np.eye(d)
+    return J
+
+
 def measurement_jacobians(
     lay: Any, geom: Any, x: Array, ks: NDArray[Any], eps: float = 1e-7
 ) -> Array:
@@ -218,6 +260,7 @@ def actual_covariance(
     geom: Any,
     q_r: float,
     flow_walk_var: float = 0.0,
+    world: bool = False,
 ) -> tuple[Array, Array]:
     """``P_f`` and ``P_a`` (n, d, d) after each epoch (NaN before the filter's start): the
     filter's covariance and the actual error's, linearised along ``hist`` (module docstring),
@@ -225,7 +268,12 @@ def actual_covariance(
     the variances the filter used; ``tun`` its resolved tuning (Q); ``q_r`` the scenario's
     ``process_noise.rotational_rad2_s4``; ``flow_walk_var`` the per-component variance the
     filter's ``sigma_o`` gave the rate walk (``flow_process_noise_rad_s`` squared: the
-    analysis counts that error as the common one it is instead)."""
+    analysis counts that error as the common one it is instead). ``world``: the filter updates
+    in the world chart (``update_chart``), and so does the analysis: the error in the world
+    chart at each estimate (its Jacobian ``J`` on the body chart's, :func:`world_jacobians`),
+    the step ``J(f(x_k-1)) F J(x_k-1)^-1``, the update ``H J(x_k)^-1`` (no column on the
+    attitude: the projections do not see it there); ``P_f``, ``P_a`` are returned in the body
+    chart at the estimate."""
     lay = hist.layout
     n, d = len(t), lay.dim
     N = z.shape[1]
@@ -251,10 +299,15 @@ def actual_covariance(
     D = d + 4 * m + 18
     C = np.zeros((D, D))
     Pf = np.array(hist.P[k0], dtype=float)
+    Pf_out[k0] = Pa_out[k0] = Pf
+    if world:
+        Jx = world_jacobians(lay, x)  # at the estimates
+        Jp = world_jacobians(lay, predicted_states(lay, x, t, ks))  # at the predictions
+        Jx_inv = np.linalg.inv(Jx)
+        Pf = Jx[k0] @ Pf @ Jx[k0].T
     C[:d, :d] = Pf
     C[d : d + 4 * m, d : d + 4 * m] = s2 * np.eye(4 * m)
     C[d + 4 * m :, d + 4 * m :] = np.eye(18)
-    Pf_out[k0], Pa_out[k0] = Pf, Pf
     Db = D + m + 6  # with the projection noise at t_k+2 and the process noise of step k+2
     ie = np.arange(d)
     inw = d + np.arange(5 * m)  # noise t_k-2 .. t_k+2 in the extended state
@@ -265,7 +318,12 @@ def actual_covariance(
     for j, k in enumerate(ks.tolist()):
         F[np.ix_(dyn, dyn)] = Fd[j]
         i = Hof.get(k)
-        Pf = F @ Pf @ F.T + (Qf if i is not None else Qcoast)
+        Qk = Qf if i is not None else Qcoast
+        Fk = F
+        if world:
+            Fk = Jp[j] @ F @ Jx_inv[k - 1]
+            Qk = Jp[j] @ Qk @ Jp[j].T
+        Pf = Fk @ Pf @ Fk.T + Qk
         # the truth's process noise over step k, per principal axis (I_max / I_i)^2
         mk = np.exp(np.array([kk[k - 1, 0], 0.0, kk[k - 1, 1]]))
         sq = np.sqrt(q_r * (mk.max() / mk) ** 2) if np.all(np.isfinite(mk)) else np.zeros(3)
@@ -282,11 +340,12 @@ def actual_covariance(
         Cb[np.ix_(inw[4 * m :], inw[4 * m :])] = s2 * np.eye(m)
         Cb[np.ix_(ipw[18:], ipw[18:])] = np.eye(6)
         L = np.eye(Db)
-        L[:d, :d] = F
-        L[:d, ipw[6:12]] = G  # step k: the second of the window
+        L[:d, :d] = Fk
+        L[:d, ipw[6:12]] = Jp[j] @ G if world else G  # step k: the second of the window
         Cb = L @ Cb @ L.T
         if i is not None:
-            rows, H, Rk, K, A, Pf = filter_update(Pf, Hk[i], z[k], R[k])
+            Hb = Hk[i]
+            rows, H, Rk, K, A, Pf = filter_update(Pf, Hb @ Jx_inv[k] if world else Hb, z[k], R[k])
             flow = is_flow[rows]
             white = np.where(flow, np.maximum(Rk[rows] - stencil_var - flow_walk_var, 0.0), 0.0)
             # the stencil's rate error: per axis a, its coefficients on steps k-1 .. k+2
@@ -296,7 +355,8 @@ def actual_covariance(
                     W[a, 6 * s_ + 2 * a : 6 * s_ + 2 * a + 2] = (
                         sq[a] * dt**0.5 / 12.0 * _WALK_COEF[s_]
                     )
-            Hr = np.where(flow[:, None], H[:, er], 0.0)
+            # the flow's response to the body rate's walk (the stencil sees the truth's)
+            Hr = np.where(flow[:, None], Hb.reshape(-1, d)[rows][:, er], 0.0)
             T = np.eye(Db)
             T[:d, :d] = A
             T[:d, inw] = -K @ M[rows]
@@ -304,7 +364,11 @@ def actual_covariance(
             Cb = T @ Cb @ T.T
             Cb[:d, :d] += (K * white) @ K.T
         C = Cb[np.ix_(keep, keep)]
-        Pf_out[k], Pa_out[k] = Pf, C[:d, :d]
+        if world:
+            Pf_out[k] = Jx_inv[k] @ Pf @ Jx_inv[k].T
+            Pa_out[k] = Jx_inv[k] @ C[:d, :d] @ Jx_inv[k].T
+        else:
+            Pf_out[k], Pa_out[k] = Pf, C[:d, :d]
     return Pf_out, Pa_out
 
 

@@ -220,6 +220,26 @@ def _boxplus(x: Array, dx: Array) -> Array:
     return np.concatenate([v, q, x[..., 7:] + dx[..., 6:]], axis=-1)
 
 
+def world_chart_points(X: Array, runs: NDArray[np.bool_], to_world: bool) -> Array:
+    """States (B, S, nom) of ``runs`` between the body chart (the filter's: rate and features
+    in T) and the world chart (the rate and the features' offsets in I: ``R_IT omega``,
+    ``R_IT p_i``; attitude and inertia ratios as they are). The projections and their flow
+    depend on the state only through the world chart's rate and features (Kabir 2025 eq. 4,
+    18-23), so in it a turn of the body frame alone -- the principal frame against the
+    feature set, which only the Euler dynamics fix -- is the attitude block alone, and an
+    update cannot learn it from the measurements (tumblenav, issue 18: in the body chart the
+    filter's linearisation at moving estimates gave it information on that turn that the
+    data do not hold, NEES 1e5 at 1e-6 rad of projection noise)."""
+    R = rot.quat_to_matrix_fast(X[..., 3:7])  # R_TI (normalised)
+    if to_world:
+        R = np.swapaxes(R, -1, -2)  # R_IT
+    Y = X.copy()
+    Y[..., 0:3] = (R @ X[..., 0:3, None])[..., 0]
+    p = X[..., 9:].reshape(X.shape[:-1] + (-1, 3))
+    Y[..., 9:] = (p @ np.swapaxes(R, -1, -2)).reshape(X.shape[:-1] + (-1,))
+    return np.where(runs[:, None, None], Y, X)
+
+
 def quat_cov_map(q_hat: Array) -> Array:
     """(..., 3, 4) ``d dtheta / d q`` at ``q_hat`` for ``dtheta = 2 vec(q (x) conj(q_hat))``,
     the first-order form of :func:`tumblenav.rotations.boxminus` (its null space is the

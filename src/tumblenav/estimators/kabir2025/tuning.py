@@ -176,6 +176,14 @@ class KabirTuning(BaseModel):
         "noise in a coast (nothing updates them)",
     )
 
+    update_chart: Literal["world", "body"] = Field(
+        "world",
+        description="the chart of the measurement update: 'world' (tumblenav default, issue "
+        "18) the rate and features turned into I for the update, where the projections do "
+        "not depend on the attitude, so that the principal frame against the feature set is "
+        "learnt from the Euler dynamics only; 'body' (Kabir 2025) the filter's own chart, "
+        "rate and features in T",
+    )
     covariance_report: Literal["actual", "filter"] = Field(
         "actual",
         description="ukf / ukf-mult: the covariance the history reports; the estimate is the "
@@ -241,7 +249,7 @@ def paper_tuning(f_T_hz: float) -> dict[str, Any]:
     """Kabir 2025 Sec. 3.2's per-frequency tuning: ``q_omega_var``, ``q_quat_var``,
     ``sigma_flow_rad_s`` for f_T in 0.025, 0.075, 0.125, 0.175 Hz, with the paper's
     ``q_k_var``, ``q_feature_var`` and its observation model (the instantaneous flow, the
-    disparity as a fifth component)."""
+    disparity as a fifth component, the update in the filter's own body chart)."""
     for f, (qw, qq, so) in _PAPER_PER_FREQUENCY.items():
         if abs(f_T_hz - f) < 1e-6:
             return {
@@ -252,6 +260,7 @@ def paper_tuning(f_T_hz: float) -> dict[str, Any]:
                 "q_feature_var": _PAPER_Q_FEATURE,
                 "flow_model": "instantaneous",
                 "use_disparity": True,
+                "update_chart": "body",
             }
     raise InputError(
         f"Kabir 2025 tunes only f_T = {', '.join(map(str, _PAPER_PER_FREQUENCY))} Hz; "
