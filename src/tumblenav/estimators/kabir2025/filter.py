@@ -282,9 +282,10 @@ class _UKFModel:
         self, x: Array, P: Array, runs: NDArray[np.bool_], to_world: bool
     ) -> tuple[Array, Array, NDArray[np.bool_]]:
         """The mean and covariance of ``runs`` in the other chart
-        (:func:`~.model.world_chart_points`): the mean is the centre point's image (the charts are one bijection, so a round trip
-        returns the same mean), the covariance the spread of the transformed sigma points
-        about it (the first-order map J P J^T, to fourth order in the spread)."""
+        (:func:`~.model.world_chart_points`): the mean is the centre point's image (the
+        charts are one bijection, so a round trip returns the same mean), the covariance the
+        spread of the transformed sigma points about it (the first-order map J P J^T, to
+        fourth order in the spread)."""
         ut = self.ut
         off, rep = ut.offsets(P)
         X = x[:, None, :] + off if self.additive else _boxplus(x[:, None, :], off)

@@ -33,7 +33,10 @@ Measured (issue 18, 20 runs, ukf; ``covariance_report`` of
 near 1 (features 0.58 -> 1.01); kabir_rate005_observed 0.939 -> 1.04,
 kabir_inertia_observed 0.968 -> 0.996; kabir_paper_observed 1.07 -> 1.15, its rate and attitude
 blocks over-confident (1.7, 2.2) in a way the analysis does not explain (a quiet truth,
-q_r = 2.5e-13, gives 0.98 there).
+q_r = 2.5e-13, gives 0.98 there). The seventh session explained it: the body chart's update
+took the turn of the principal frame against the feature set as measured; with the filter and
+this analysis in the world chart (``update_chart``, ``actual_covariance(world=True)``)
+kabir_paper_observed is 1.01 (docs/results/consistency.md).
 """
 
 from __future__ import annotations
