@@ -88,7 +88,7 @@ from tumblenav.estimators.base import (
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.estimators.kabir2025.filter import _filter, _history, prepare, run_ukf
 from tumblenav.estimators.kabir2025.init import error_to_filter_cov
-from tumblenav.estimators.kabir2025.mismatch import actual_covariance, report_actual
+from tumblenav.estimators.kabir2025.mismatch import actual_covariance, moving_q, report_actual
 from tumblenav.estimators.kabir2025.model import _process_noise, check_scenario, geometry
 from tumblenav.estimators.kabir2025.observations import stereo_measurements
 from tumblenav.estimators.kabir2025.tuning import parse_tuning
@@ -203,7 +203,8 @@ def _report(hist: EstimateHistory, scenario: Any, t: Array, z: Array, prep: Any,
     walk = float(prep.derived.get("flow_process_noise_rad_s", 0.0)) ** 2
     world = tun.update_chart == "world"
     Pf, Pa = actual_covariance(hist, t, z, prep.R_diag, tun, geom, q_r, walk, world)
-    report_actual(hist, Pf, Pa, np.any(np.isfinite(z[..., 0]), axis=1))
+    measured = np.any(np.isfinite(z[..., 0]), axis=1)
+    report_actual(hist, Pf, Pa, measured, t, moving_q(hist.layout, tun))
 
 
 register("ukf")(lambda: KabirUKF("additive"))

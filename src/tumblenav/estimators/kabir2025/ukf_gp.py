@@ -70,9 +70,12 @@ from tumblenav.estimators.kabir2025 import model as ukf_model
 from tumblenav.estimators.kabir2025 import observations as ukf_obs
 from tumblenav.estimators.kabir2025 import tuning as ukf_tuning
 from tumblenav.estimators.kabir2025.mismatch import (  # shared with ukf, ukf-mult
+    actual_map,
     analysis_setup,
+    coast_ensemble,
     filter_update,
     floor_congruence,
+    moving_q,
 )
 from tumblenav.estimators.kabir2025.mismatch import step_jacobians as _step_jacobians
 from tumblenav.frontends import projections as proj
@@ -551,13 +554,13 @@ def _frozen_rigid_actual(
     tun: ukf_tuning.KabirTuning,
     geom: Any,
     consider: NDArray[np.bool_],
-) -> None:
+) -> tuple[Array, Array]:
     """Where the rigid parameters are frozen (``consider`` epochs), their reported covariance
     becomes the actual error covariance of the estimate they were frozen at
     (:func:`rigid_floor_correction`): ``P <- T P T^T``, ``T`` the identity but for the rigid
     block, :func:`floor_congruence` of the last real measurement's ``P_f`` and ``P_a`` (the
     rate and attitude block is unchanged; their cross-covariances with the rigid parameters
-    follow). In place."""
+    follow). In place; returns the analysis' ``P_f``, ``P_a``."""
     assert hist.P is not None
     lay = hist.layout
     E = np.arange(lay.dim)
@@ -566,7 +569,7 @@ def _frozen_rigid_actual(
     okf = np.all(np.isfinite(Pf), axis=(1, 2)) & np.all(np.isfinite(Pa), axis=(1, 2))
     src = np.flatnonzero(~np.asarray(consider, dtype=bool) & okf)
     if len(src) == 0:
-        return
+        return Pf, Pa
     last = np.maximum.accumulate(np.where(np.isin(np.arange(len(t)), src), np.arange(len(t)), -1))
     cache: dict[int, Array] = {}
     for k in np.flatnonzero(np.asarray(consider, dtype=bool) & (last >= 0)).tolist():
@@ -579,6 +582,48 @@ def _frozen_rigid_actual(
         if np.all(np.isfinite(P)):
             T = cache[j]
             hist.P[k] = T @ P @ T.T
+    return Pf, Pa
+
+
+def _coasts_actual(
+    hist: EstimateHistory,
+    t: Array,
+    real: NDArray[np.bool_],
+    coast: NDArray[np.bool_],
+    Pf: Array,
+    Pa: Array,
+    q_moving: Array,
+) -> None:
+    """Where nothing is measured, real or predicted by a GP (every feature's GP unusable: the
+    filter only propagates), the covariance is ukf's through a coast
+    (:func:`~tumblenav.estimators.kabir2025.mismatch.coast_ensemble`) from the actual error's
+    covariance at the last real measurement (the filter's mapped by
+    :func:`~tumblenav.estimators.kabir2025.mismatch.actual_map`). In place."""
+    assert hist.P is not None
+    n = len(t)
+    k = 0
+    while k < n:
+        if not (coast[k] and k > 0 and real[k - 1]):
+            k += 1
+            continue
+        j = k
+        while j < n and coast[j]:
+            j += 1
+        kl = k - 1
+        P = hist.P[kl]
+        ok = P is not None and all(np.all(np.isfinite(a)) for a in (P, Pf[kl], Pa[kl]))
+        if ok:
+            try:
+                T = actual_map(Pf[kl], Pa[kl])
+            except np.linalg.LinAlgError:
+                T = None
+            if T is not None:
+                P0 = T @ np.asarray(P, dtype=float) @ T.T
+                ks = np.arange(k, j)
+                Pc = coast_ensemble(hist, t, kl, ks, P0, q_moving)
+                for i, kc in enumerate(ks.tolist()):
+                    hist.P[kc] = Pc[i]
+        k = j
 
 
 class KabirUKFGP:
@@ -653,7 +698,10 @@ class KabirUKFGP:
             idx = np.r_[E[lay.err("rate")], E[lay.err("attitude")]]
             hist.P[:, idx[:, None], idx[None, :]] += D
             if honest and consider is not None:
-                _frozen_rigid_actual(hist, t, z, Rp, tun_r, geom, consider)
+                Pf, Pa = _frozen_rigid_actual(hist, t, z, Rp, tun_r, geom, consider)
+                coast = ~real & ~np.any(np.isfinite(zp[..., 0]), axis=1)
+                if coast.any():
+                    _coasts_actual(hist, t, real, coast, Pf, Pa, moving_q(hist.layout, tun_r))
         for line in prep.warnings:
             warnings.warn(line, stacklevel=2)
         hist.skipped["gp_fallback_features"] = len(fallback)
