@@ -217,10 +217,16 @@ def _identified_start(
         common[ks][..., None], np.nan_to_num(r[ks]) - np.einsum("bij,nj->bni", R_IG, g), 0.0
     )
     sig_r2 = float(np.sum(resid**2) / max(3 * common[ks].sum() - 3 * len(ks), 1))
-    # central rates of G in G at epochs ks[1:-1]
-    dR = np.einsum("bji,bjk->bik", R_IG[:-2], R_IG[2:])  # R_IG(k-1)^T R_IG(k+1)
-    w_G = rot.log_map(dR) / (2.0 * dt)  # (m, 3), at ks[1:-1]
-    R_GI = np.swapaxes(R_IG[1:-1], -1, -2)
+    # central rates of G in G at epochs ks[L:-L], over +- L epochs (init_rate_lag)
+    spread = float(np.sum(g[tmpl_ok] ** 2))
+    L = _rate_lag(R_IG, dt, tun.init_rate_lag, sig_r2 / max(spread, 1e-9))
+    if len(ks) - 2 * L < 10:
+        raise InputError(
+            "estimator.tuning.init: 'identified' needs >= 10 central rates at the start"
+        )
+    dR = np.einsum("bji,bjk->bik", R_IG[: -2 * L], R_IG[2 * L :])  # R_IG(k-L)^T R_IG(k+L)
+    w_G = rot.log_map(dR) / (2.0 * L * dt)  # (m, 3), at ks[L:-L]
+    R_GI = np.swapaxes(R_IG[L:-L], -1, -2)
     a, b = inertia_design(w_G, R_GI)
     a = a.reshape(-1, 3, 8)
     b = b.reshape(-1, 3)
@@ -246,17 +252,17 @@ def _identified_start(
             "init: triangulated or given"
         )
     m = best["m"]
-    kc = int(ks[m])  # epoch of the last central rate used (its difference reaches ks[m + 1])
+    kc = int(ks[m - 1 + L])  # epoch of the last central rate used (its difference: ks[m-1+2L])
     R_GT = best["R_GT"]
     lam = best["lam"]
     # features never seen at the template epoch: from the first window epoch they are seen
     g_all = g.copy()
     for i in np.flatnonzero(~tmpl_ok):
-        seen = np.flatnonzero(ok[ks[: m + 2], i])
+        seen = np.flatnonzero(ok[ks[: m + 2 * L], i])
         if len(seen):
             j = seen[0]
             g_all[i] = R_IG[j].T @ r[ks[j], i]
-    x = _identified_state(R_IG[m], w_G[m - 1], g_all, R_GT, lam)
+    x = _identified_state(R_IG[m - 1 + L], w_G[m - 1], g_all, R_GT, lam)
     lay = layout(N)
     # covariance: the identification's (numerical Jacobian of the state in l) ...
     l0 = best["X"][:5]
@@ -268,15 +274,14 @@ def _identified_start(
             lj = l0.copy()
             lj[j] += sgn * h
             lam_j, R_j = _principal(_inertia(lj), ref=R_GT)
-            xs.append(_identified_state(R_IG[m], w_G[m - 1], g_all, R_j, lam_j))
+            xs.append(_identified_state(R_IG[m - 1 + L], w_G[m - 1], g_all, R_j, lam_j))
         Jl[:, j] = (lay.boxminus(xs[0], x) - lay.boxminus(xs[1], x)) / (2 * h)
     P = Jl @ best["cov_l"] @ Jl.T
     # ... plus the measurements' own: the rate (the least squares' residual level, 3x for the
     # overlapping differences), G's attitude at kc (the Kabsch residuals over the points'
     # spread) and the template (its residuals over the epochs that saw each point)
-    spread = float(np.sum(g[tmpl_ok] ** 2))
     var_att = max(3.0 * sig_r2 / max(spread, 1e-9), (0.1 * sigma_p) ** 2)
-    var_w = max(3.0 * best["s2"], 2.0 * var_att / dt**2)
+    var_w = max(3.0 * best["s2"], 2.0 * var_att / (2.0 * L * dt) ** 2 * 4.0)
     P[0:3, 0:3] += var_w * np.eye(3)
     P[3:6, 3:6] += var_att * np.eye(3)
     var_p = 3.0 * sig_r2 / np.maximum(cnt, 1) + (0.1 * sigma_p * 10.0) ** 2
@@ -286,7 +291,8 @@ def _identified_start(
     info = {
         "init": "identified",
         "start_s": float(t[kc]),
-        "window_s": [float(t[kt]), float(t[ks[m + 1]])],
+        "window_s": [float(t[kt]), float(t[ks[m - 1 + 2 * L]])],
+        "rate_lag": L,
         "frame_sigma_rad": float(best["sigma_frame"]),
         "inertia_condition": float(best["cond"]),
     }
@@ -294,10 +300,27 @@ def _identified_start(
         info["warning"] = (
             f"identified start: the principal frame is known only to "
             f"{np.degrees(best['sigma_frame']):.1f} deg (1 sigma) after "
-            f"{(ks[m + 1] - kt) * dt:.0f} s of observation; the filter starts with that "
+            f"{(ks[m - 1 + 2 * L] - kt) * dt:.0f} s of observation; the filter starts with that "
             "covariance"
         )
     return KabirStart(kc, x, 0.5 * (P + P.T), info)
+
+
+def _rate_lag(R_IG: Array, dt: float, lag: int | None, var_att: float) -> int:
+    """The central differences' half-width in epochs (``init_rate_lag``): the given one, or
+    the fewest that bring the rate's noise (``sqrt(2 var_att) / (2 L dt)``, ``var_att`` the
+    attitudes' noise per axis) below 1 % of the rate, at most as many as turn the target by
+    0.8 rad per epoch of half-width (the difference's truncation), a tenth of the window
+    and 50."""
+    if lag is not None:
+        return int(lag)
+    step = rot.log_map(np.einsum("bji,bjk->bik", R_IG[:-1], R_IG[1:]))
+    turn = float(np.median(np.linalg.norm(step, axis=-1))) if len(step) else 0.0
+    if turn <= 0.0:
+        return 1
+    L_noise = int(np.ceil(np.sqrt(2.0 * var_att) / (2.0 * 0.01 * turn)))
+    L_max = max(1, min(int(np.floor(0.8 / turn)), 50, len(R_IG) // 10))
+    return max(1, min(L_noise, L_max))
 
 
 def _inertia(l: Array) -> Array:

@@ -79,6 +79,16 @@ class KabirTuning(BaseModel):
         description="'identified' start: the longest window (s); default: the first run of "
         "observations",
     )
+    init_rate_lag: int | None = Field(
+        None,
+        ge=1,
+        le=50,
+        description="'identified' start: the rates of the feature set are central differences "
+        "of its attitudes over +- this many epochs; default (null): the fewest that bring the "
+        "rate's noise (from the attitudes' scatter about the rigid template) below 1 % of the "
+        "rate, at most 0.8 rad of tumble per epoch of half-width (1 on every built-in and table "
+        "scenario; 2 at 30 m, 3 at ten times the paper's pixel noise)",
+    )
     init_attitude_sigma_rad: float = Field(
         1.0,
         gt=0,
