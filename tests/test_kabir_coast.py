@@ -154,3 +154,24 @@ def test_coast_ensemble_gives_the_covariance_of_a_long_coast_with_its_correlatio
     assert 0.9 < nees(np.arange(3)) < 1.1  # the rate
     assert 0.9 < nees(np.arange(3, 6)) < 1.1  # the attitude
     np.testing.assert_allclose(Pe[8:, 8:], P0[8:, 8:], rtol=1e-12)  # no dynamics move features
+
+
+def test_coast_ensemble_takes_a_semi_definite_start():
+    # a start covariance with an exactly known direction (here the inertia ratios) is not
+    # Cholesky-factorable: the ensemble takes its symmetric root, keeps that direction exact
+    from types import SimpleNamespace
+
+    from tumblenav.estimators.kabir2025.mismatch import coast_ensemble
+
+    lay = M.layout(1)
+    x0, P0 = start("mult")
+    P0[6:8, :] = P0[:, 6:8] = 0.0
+    xs = [x0]
+    for _ in range(20):
+        w, q = M.propagate_rotation(xs[-1][0:3], xs[-1][3:7], xs[-1][7:9], 1.0)
+        xs.append(np.r_[w, q, xs[-1][7:]])
+    hist = SimpleNamespace(layout=lay, x=np.array(xs), t=np.arange(21.0))
+    P = coast_ensemble(hist, hist.t, 0, np.arange(1, 21), P0, np.zeros(lay.dim))
+    assert np.all(np.isfinite(P))
+    assert np.all(P[:, 6:8, 6:8] == 0.0)
+    assert np.all(np.linalg.eigvalsh(P[:, :6, :6]) > 0)

@@ -444,13 +444,18 @@ def coast_ensemble(
     xi = np.r_[xi, -xi]
     W = np.linalg.cholesky(xi.T @ xi / len(xi))
     xi = np.linalg.solve(W, xi.T).T  # second moment exactly I
-    e0 = xi @ np.linalg.cholesky(S0 + 1e-300 * np.eye(len(m))).T  # (M, 8), second moment S0
+    try:
+        F0 = np.linalg.cholesky(S0 + 1e-300 * np.eye(len(m)))
+    except np.linalg.LinAlgError:  # semi-definite: a symmetric root of its non-negative part
+        lam, V = np.linalg.eigh(S0)
+        F0 = V * np.sqrt(np.clip(lam, 0.0, None))
+    e0 = xi @ F0.T  # (M, 8), second moment S0
     x0 = np.asarray(hist.x[k0], dtype=float)
     w = x0[sw] + e0[:, 0:3]
     q = rot.boxplus_fast(np.broadcast_to(x0[sq], (len(e0), 4)), e0[:, 3:6])
     kk = x0[sk] + e0[:, 6:8]
     sd = np.sqrt(q_moving[m[:6]])
-    A = np.linalg.solve(S0, P0[np.ix_(m, o)])  # features = A^T e0 + independent rest
+    A = np.linalg.pinv(S0, hermitian=True) @ P0[np.ix_(m, o)]  # features = A^T e0 + the rest
     out = np.empty((len(ks), d, d))
     k_prev = k0
     for j, k in enumerate(np.asarray(ks).tolist()):
