@@ -10,11 +10,15 @@ the estimate's symmetric frame as the evaluation does (``evaluation.alignment.al
 Usage::
 
     python benchmarks/block_nees.py SCENARIO ESTIMATOR [--seeds 0,1,2]
-        [--tuning '{"key": value}'] [--series BLOCK]
+        [--tuning '{"key": value}'] [--series BLOCK] [--at T1,T2,...] [--info KEY]
 
 ``--tuning`` updates the scenario's ``estimator.tuning`` (JSON); ``--series BLOCK`` prints that
-block's error, 1-sigma and NEES/dof over time for each run. Last line: ``block_nees
-<block>=<mean over runs> ... all=<mean>``.
+block's error, 1-sigma and NEES/dof over time for each run; ``--at`` prints, per run and as a
+mean over runs, the NEES/dof at the epochs nearest those times (s) of each block, of the blocks
+taken jointly ("moving": rate and attitude; "rigid": inertia and features, where the layout
+has them) and of the whole state (a joint NEES above its blocks' says the cross-covariances
+are wrong); ``--info KEY`` prints the history's ``info[KEY]`` for each run (e.g. ``start``,
+``gp``). Last line: ``block_nees <block>=<mean over runs> ... all=<mean>``.
 """
 
 from __future__ import annotations
@@ -34,8 +38,22 @@ from tumblenav.scenario import load_scenario
 from tumblenav.simulation import run_streams, simulate
 
 
-def run_blocks(sc, est, k: int, series: str | None = None) -> dict[str, float]:
-    """Mean NEES/dof per block of run ``k`` in the scenario's window."""
+def _groups(layout) -> list[tuple[str, np.ndarray]]:
+    """Each block, the moving and the rigid blocks jointly (where present), the whole state."""
+    E = np.arange(layout.dim)
+    names = [b.name for b in layout.blocks]
+    out = [(n, E[layout.err(n)]) for n in names]
+    for g, members in (("moving", ("rate", "attitude")), ("rigid", ("inertia", "features"))):
+        if all(m in names for m in members):
+            out.append((g, np.concatenate([E[layout.err(m)] for m in members])))
+    return out + [("all", E)]
+
+
+def run_blocks(
+    sc, est, k: int, series: str | None = None, at=(), info: str | None = None
+) -> dict[str, float]:
+    """Mean NEES/dof per block of run ``k`` in the scenario's window; with ``at``, the NEES/dof
+    at those times under the keys ``"<name>@<time>"`` as well."""
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
     images = getattr(sc.sensor, "images", None)
     consumes = tuple(getattr(est, "consumes", ()))
@@ -61,6 +79,12 @@ def run_blocks(sc, est, k: int, series: str | None = None) -> dict[str, float]:
         name: float(np.mean([nees(i, ix) for i in sel])) if len(sel) else np.nan
         for name, ix in blocks
     }
+    for tt in at:
+        i = int(np.argmin(np.abs(t - tt)))
+        for name, ix in _groups(h.layout):
+            out[f"{name}@{tt:g}"] = nees(i, ix) if ok[i] else np.nan
+    if info:
+        print(f"  info[{info!r}]: {h.info.get(info)}")
     if series:
         ix = E[h.layout.err(series)]
         for i in np.flatnonzero(ok)[:: max(1, int(ok.sum()) // 25)]:
@@ -78,7 +102,10 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2", help="run numbers, comma-separated")
     ap.add_argument("--tuning", default="{}", help="JSON updating estimator.tuning")
     ap.add_argument("--series", default=None, help="print this block's error over time")
+    ap.add_argument("--at", default="", help="times (s), comma-separated: NEES/dof there")
+    ap.add_argument("--info", default=None, help="print the history's info[KEY] for each run")
     args = ap.parse_args()
+    at = [float(x) for x in args.at.split(",") if x.strip()]
     sc = load_scenario(args.scenario)
     tuning = json.loads(args.tuning)
     if tuning:
@@ -87,10 +114,16 @@ def main() -> None:
     rows = []
     with threadpool_limits(limits=1, user_api="blas"):
         for k in [int(s) for s in args.seeds.split(",")]:
-            r = run_blocks(sc, est, k, args.series)
+            r = run_blocks(sc, est, k, args.series, at, args.info)
             print(f"run {k}: " + " ".join(f"{n}={v:.3g}" for n, v in r.items()), flush=True)
             rows.append(r)
-    names = list(rows[0])
+    for tt in at:
+        keys = [n for n in rows[0] if n.endswith(f"@{tt:g}")]
+        print(
+            f"mean at {tt:g} s: "
+            + " ".join(f"{n.split('@')[0]}={np.nanmean([r[n] for r in rows]):.3g}" for n in keys)
+        )
+    names = [n for n in rows[0] if "@" not in n]
     print("block_nees " + " ".join(f"{n}={np.nanmean([r[n] for r in rows]):.3g}" for n in names))
 
 

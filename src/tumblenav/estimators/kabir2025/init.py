@@ -281,7 +281,7 @@ def _identified_start(
     # overlapping differences), G's attitude at kc (the Kabsch residuals over the points'
     # spread) and the template (its residuals over the epochs that saw each point)
     var_att = max(3.0 * sig_r2 / max(spread, 1e-9), (0.1 * sigma_p) ** 2)
-    var_w = max(3.0 * best["s2"], 2.0 * var_att / (2.0 * L * dt) ** 2 * 4.0)
+    var_w = max(3.0 * best["s2"], 2.0 * var_att / (L * dt) ** 2)
     P[0:3, 0:3] += var_w * np.eye(3)
     P[3:6, 3:6] += var_att * np.eye(3)
     var_p = 3.0 * sig_r2 / np.maximum(cnt, 1) + (0.1 * sigma_p * 10.0) ** 2

@@ -479,6 +479,16 @@ def coast_ensemble(
     return out
 
 
+def write_coast(
+    hist: EstimateHistory, t: Array, k0: int, ks: NDArray[Any], P0: Array, q_moving: Array
+) -> None:
+    """``hist.P`` at the coast epochs ``ks`` from :func:`coast_ensemble` started with ``P0``
+    at ``k0``. In place."""
+    assert hist.P is not None
+    for P, k in zip(coast_ensemble(hist, t, k0, ks, P0, q_moving), ks.tolist(), strict=True):
+        hist.P[k] = P
+
+
 def report_actual(
     hist: EstimateHistory,
     Pf: Array,
@@ -517,8 +527,5 @@ def report_actual(
         while j < n and not measured[j] and hist.P[j] is not None:
             j += 1
         if j > k + 1 and T is not None:
-            ks = np.arange(k + 1, j)
-            Pc = coast_ensemble(hist, t, k, ks, np.asarray(hist.P[k]), q_moving)
-            for i, kc in enumerate(ks.tolist()):
-                hist.P[kc] = Pc[i]
+            write_coast(hist, t, k, np.arange(k + 1, j), np.asarray(hist.P[k]), q_moving)
         k = j

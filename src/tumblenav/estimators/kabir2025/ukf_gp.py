@@ -72,10 +72,10 @@ from tumblenav.estimators.kabir2025 import tuning as ukf_tuning
 from tumblenav.estimators.kabir2025.mismatch import (  # shared with ukf, ukf-mult
     actual_map,
     analysis_setup,
-    coast_ensemble,
     filter_update,
     floor_congruence,
     moving_q,
+    write_coast,
 )
 from tumblenav.estimators.kabir2025.mismatch import step_jacobians as _step_jacobians
 from tumblenav.frontends import projections as proj
@@ -596,7 +596,7 @@ def _coasts_actual(
 ) -> None:
     """Where nothing is measured, real or predicted by a GP (every feature's GP unusable: the
     filter only propagates), the covariance is ukf's through a coast
-    (:func:`~tumblenav.estimators.kabir2025.mismatch.coast_ensemble`) from the actual error's
+    (:func:`~tumblenav.estimators.kabir2025.mismatch.write_coast`) from the actual error's
     covariance at the last real measurement (the filter's mapped by
     :func:`~tumblenav.estimators.kabir2025.mismatch.actual_map`). In place."""
     assert hist.P is not None
@@ -618,11 +618,7 @@ def _coasts_actual(
             except np.linalg.LinAlgError:
                 T = None
             if T is not None:
-                P0 = T @ np.asarray(P, dtype=float) @ T.T
-                ks = np.arange(k, j)
-                Pc = coast_ensemble(hist, t, kl, ks, P0, q_moving)
-                for i, kc in enumerate(ks.tolist()):
-                    hist.P[kc] = Pc[i]
+                write_coast(hist, t, kl, np.arange(k, j), T @ np.asarray(P) @ T.T, q_moving)
         k = j
 
 
