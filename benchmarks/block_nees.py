@@ -18,7 +18,9 @@ mean over runs, the NEES/dof at the epochs nearest those times (s) of each block
 taken jointly ("moving": rate and attitude; "rigid": inertia and features, where the layout
 has them) and of the whole state (a joint NEES above its blocks' says the cross-covariances
 are wrong); ``--info KEY`` prints the history's ``info[KEY]`` for each run (e.g. ``start``,
-``gp``). Last line: ``block_nees <block>=<mean over runs> ... all=<mean>``.
+``gp``). ``NIS`` is each run's NIS/dof over the window (the sum of NIS over the sum of its
+dof, as the campaign's; NaN without an update there). Last line: ``block_nees <block>=<mean
+over runs> ... all=<mean> NIS=<mean>``.
 """
 
 from __future__ import annotations
@@ -79,6 +81,8 @@ def run_blocks(
         name: float(np.mean([nees(i, ix) for i in sel])) if len(sel) else np.nan
         for name, ix in blocks
     }
+    nw = (t >= w0) & (t <= w1) & (h.nis_dof > 0) & np.isfinite(h.nis)
+    out["NIS"] = float(h.nis[nw].sum() / h.nis_dof[nw].sum()) if nw.any() else np.nan
     for tt in at:
         i = int(np.argmin(np.abs(t - tt)))
         for name, ix in _groups(h.layout):

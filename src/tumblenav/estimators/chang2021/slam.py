@@ -401,7 +401,22 @@ class StateSteps(TrackSteps):
         """The filter run over the start window from k0, where That is defined (attitude
         identity, exact), with the window's rate and mass-centre fit (propagated back to k0)
         as a loose prior: the start's attitude is then the filter's over the window, not the
-        window's last q-method fix (whose error the unobservable attitude gauge would keep)."""
+        window's last q-method fix (whose error the unobservable attitude gauge would keep).
+
+        Each pass after the first is relinearised (an iterated filter, as Gauss-Newton
+        relinearises a batch): the mass centre starts from the previous pass's, and with
+        ``replay_relinearise_map`` each map point's first-estimate Jacobian (``fej``: the
+        attitude columns ``R_LThat [s]x``) is evaluated at the previous pass's estimate of that
+        point, not at its first triangulation. Why (tumblenav, issue 18): FEJ keeps the
+        attitude gauge unobservable, but at the first triangulation's error (at 20 m with 0.5
+        px ~0.2 m in depth against ~1 m lever arms) the gain spreads each innovation with the
+        wrong lever arms, and the window's attitude came out over-confident: chang_range20,
+        20 runs, window 40-100 s (``python benchmarks/block_nees.py
+        docs/results/scenarios/consistency/chang_range20.yaml ekf-pose --seeds 0,...,19``):
+        attitude block 1.91, all 1.43 with 3 plain passes (run 13's start 0.2 deg off at
+        ~3 sigma); relinearised 1.10 / 1.12 with 3 passes, 1.07 / 1.06 with 4, 1.05 / 1.03
+        with 5. The point covariance of the augmentation evaluated at the previous pass's
+        points as well: no change (1.12 with 3 passes), not kept."""
         tt = self.meas.t
         k0, k1 = s.k0, s.k
         x = x_end.copy()
@@ -421,16 +436,21 @@ class StateSteps(TrackSteps):
         P[_V, _V] = P_end[_V, _V]
         P0 = self._with_inertia(P)
         b: Belief | None = None
+        lin = None
         for _ in range(self.tun.start_passes):
             if b is not None:  # relinearise: the last pass's mass centre at k1, back to k0
                 x[7:13] = Phi @ b.x[7:13]
-            ids, s_map, P = self._augment(x, P0, np.zeros(0, np.int64), np.zeros((0, 6)), k0)
+            ids, s_map, P = self._augment(x, P0, np.zeros(0, np.int64), np.zeros((0, 6)), k0, lin)
             memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
             b = Belief(float(tt[k0]), x.copy(), P, LAYOUT_POSE, memo)
+            nxt = np.full((self.tracks.p.shape[1], 3), np.nan)
             for k in range(k0 + 1, k1 + 1):
-                b, info = self.update(self.predict(b, float(tt[k])), k, False)
+                b, info = self.update(self.predict(b, float(tt[k])), k, False, lin)
                 if info.diverged:
                     return None, StepInfo(skipped={"initialising": 1})
+                nxt[b.memo.ids] = b.memo.s
+            if self.tun.replay_relinearise_map:
+                lin = nxt
         assert b is not None
         return self._release_axis(b), StepInfo()
 
@@ -495,7 +515,7 @@ class StateSteps(TrackSteps):
         return Belief(t, x, 0.5 * (P + P.T), LAYOUT_POSE, belief.memo)
 
     def _augment(
-        self, x: Array, P: Array, ids: IntArray, s_map: Array, k: int
+        self, x: Array, P: Array, ids: IntArray, s_map: Array, k: int, lin: Array | None = None
     ) -> tuple[IntArray, Array, Array]:
         """Fill the free slots (``max_map_features``) with the observed tracks not in the
         map, the longest tracked so far first."""
@@ -511,10 +531,16 @@ class StateSteps(TrackSteps):
         new = cand[order[:free]]
         s3, P = augment(x, P, s_map[:, :3], tr.p[k, new], tr.P[k, new])
         s_new = s3[len(ids) :]
-        s_map = np.vstack([s_map, np.hstack([s_new, s_new])])  # current and first estimates
+        s_first = s_new.copy()  # the first estimate, where the attitude columns are evaluated
+        if lin is not None:  # the start replay's later passes: the previous pass's map
+            good = np.all(np.isfinite(lin[new]), axis=1)
+            s_first[good] = lin[new][good]
+        s_map = np.vstack([s_map, np.hstack([s_new, s_first])])  # current and first estimates
         return np.concatenate([ids, new]), s_map, P
 
-    def update(self, belief: Belief, k: int, started: bool) -> tuple[Belief, StepInfo]:
+    def update(
+        self, belief: Belief, k: int, started: bool, lin: Array | None = None
+    ) -> tuple[Belief, StepInfo]:
         x, P, memo = belief.x, belief.P, belief.memo
         ids, s_map = memo.ids, np.hstack([memo.s, memo.s0])  # (m, 6): current, first
         j = memo.j
@@ -647,7 +673,7 @@ class StateSteps(TrackSteps):
                 check = None
             if check is None:
                 check = (k, x[0:4].copy(), P[_A, _A].copy())
-        ids, s_map, P = self._augment(x, P, ids, s_map, k)
+        ids, s_map, P = self._augment(x, P, ids, s_map, k, lin)
         resid = None
         if tun.slip_probability is not None:
             resid = (k, tr.p[k, ids] - predicted_features(x, s_map[:, :3]))
