@@ -5,7 +5,6 @@ R gives), with a true variance that changes over the loss."""
 
 from __future__ import annotations
 
-import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,12 +13,7 @@ import pytest
 from tumblenav.estimators.kabir2025 import ukf_gp
 
 
-@dataclasses.dataclass
-class _Prep:
-    R_diag: np.ndarray
-
-
-def _setup(monkeypatch, rng):
+def _setup(rng):
     n, N = 600, 3
     t = np.arange(n, dtype=float)
     z = np.full((n, N, 9), np.nan)
@@ -32,39 +26,33 @@ def _setup(monkeypatch, rng):
     true_var = 1e-10 * (0.12 + 0.08 * np.sin(2 * np.pi * t / 200.0))  # changes over the loss
     calls = []
 
-    def fake_run(scenario, t_, zp_, Rp, variant, tun_r, geom, prepared=None, consider=None):
+    def rerun(Rp):  # the filter's NIS where R dominates its innovations' covariance
         calls.append(Rp.copy())
-        dof = np.where(np.isfinite(zp_[:, 0, 0]), 9, 0)
+        dof = np.where(np.isfinite(zp[:, 0, 0]), 9, 0)
         ratio = true_var / Rp[:, 0, 0]
         nis = np.where(dof > 0, dof * ratio * rng.chisquare(9, n) / 9, np.nan)
-        return SimpleNamespace(t=t_, nis=nis, nis_dof=dof)
+        return SimpleNamespace(t=t, nis=nis, nis_dof=dof)
 
-    monkeypatch.setattr(ukf_gp.ukf_filter, "run_ukf", fake_run)
-    hist = fake_run(None, t, zp, R0, None, None, None)
+    hist = rerun(R0)
     args = dict(
-        scenario=None,
-        t=t,
+        rerun=rerun,
         z=z,
         zp=zp,
         Rp=R0,
         extra=np.zeros_like(R0),
         pseudo=pseudo,
-        tun_r=None,
-        geom=None,
-        prep=_Prep(R0),
-        consider=None,
         window=21,
     )
     return hist, args, true_var, calls
 
 
-def test_single_gp_r_matched_to_its_innovations(monkeypatch):
+def test_single_gp_r_matched_to_its_innovations():
     rng = np.random.default_rng(18)
-    hist, args, true_var, calls = _setup(monkeypatch, rng)
+    hist, args, true_var, calls = _setup(rng)
     want = np.mean(true_var[300:]) / 1e-10  # the sensor's R: NIS/dof ~0.1, as measured
     assert np.nansum(hist.nis[300:]) / hist.nis_dof[300:].sum() == pytest.approx(want, rel=0.1)
-    tun = ukf_gp.UKFGPTuning(gp_single_match_passes=3)
-    h, Rp = ukf_gp._matched_single_gp(hist, tun=tun, **args)
+    passes = ukf_gp.UKFGPTuning().gp_single_match_passes  # the default: 3
+    h, Rp = ukf_gp._matched_single_gp(hist, passes=passes, **args)
     assert len(calls) == 4  # the given pass and three matching passes
     ratio = Rp[300:, 0, 0] / true_var[300:]
     assert np.median(np.abs(ratio - 1.0)) < 0.1  # follows the change over the loss
@@ -74,16 +62,14 @@ def test_single_gp_r_matched_to_its_innovations(monkeypatch):
     assert np.all(Rp[:300] == 1e-10) and np.all(Rp[:, 1:] == 1e-10)
 
 
-def test_single_gp_matching_off_or_not_single(monkeypatch):
+def test_single_gp_matching_off_or_not_single():
     rng = np.random.default_rng(19)
-    hist, args, _, calls = _setup(monkeypatch, rng)
-    h, Rp = ukf_gp._matched_single_gp(
-        hist, tun=ukf_gp.UKFGPTuning(gp_single_match_passes=0), **args
-    )
+    hist, args, _, calls = _setup(rng)
+    h, Rp = ukf_gp._matched_single_gp(hist, passes=0, **args)
     assert h is hist and np.all(Rp == args["Rp"]) and len(calls) == 1
     # where gp_inconsistency measured the GPs' own error (extra > 0) nothing is matched
     args["extra"] = np.where(np.isfinite(args["zp"]) & ~np.isfinite(args["z"]), 1e-11, 0.0)
-    h, Rp = ukf_gp._matched_single_gp(hist, tun=ukf_gp.UKFGPTuning(), **args)
+    h, Rp = ukf_gp._matched_single_gp(hist, passes=3, **args)
     assert h is hist and len(calls) == 1
 
 

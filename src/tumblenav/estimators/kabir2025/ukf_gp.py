@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Literal
 
@@ -459,15 +460,10 @@ def gp_inconsistency(
     ss = np.sum(res.reshape(len(ks), N, 2, 3) ** 2, axis=(1, 3))
     raw = np.where(cnt > 3, ss / np.maximum(cnt - 3, 1), np.nan)
     # centred moving average over the pseudo-measurement epochs
-    half = window // 2
     for j in range(2):
-        v = raw[:, j]
-        okv = np.isfinite(v)
-        c = np.concatenate([[0.0], np.cumsum(np.where(okv, v, 0.0))])
-        c_n = np.concatenate([[0], np.cumsum(okv)])
-        lo = np.clip(np.arange(len(ks)) - half, 0, len(ks))
-        hi = np.clip(np.arange(len(ks)) + half + 1, 0, len(ks))
-        s2[ks, j] = (c[hi] - c[lo]) / np.maximum(c_n[hi] - c_n[lo], 1)
+        okv = np.isfinite(raw[:, j])
+        m = _moving_ratio(np.where(okv, raw[:, j], 0.0), okv, window)
+        s2[ks, j] = np.where(np.isfinite(m), m, 0.0)
     # the effect on rate and attitude of one epoch's least squares with these variances; an
     # epoch missing a kind (no flow at the predictions' ends) keeps the previous epoch's
     floor = 1e-4 * np.nanmedian(Rs[ks][:, :, cols], axis=(1, 2))[:, None]
@@ -576,26 +572,21 @@ def gp_error_model(
 
 def _matched_single_gp(
     hist: EstimateHistory,
-    scenario: Any,
-    t: Array,
+    rerun: Callable[[Array], EstimateHistory],
     z: Array,
     zp: Array,
     Rp: Array,
     extra: Array,
     pseudo: NDArray[np.bool_],
-    tun: UKFGPTuning,
-    tun_r: ukf_tuning.KabirTuning,
-    geom: Any,
-    prep: Any,
-    consider: NDArray[np.bool_] | None,
+    passes: int,
     window: int,
 ) -> tuple[EstimateHistory, Array]:
     """Where a single GP predicts (no other to disagree with, so :func:`gp_inconsistency`
     cannot measure its own error), its pseudo-measurements' R is matched to the filter's
     innovations (covariance matching, Mehra 1970): each pass scales that R at each epoch by
     the NIS/dof the previous pass had over a centred ``window`` of those epochs (the GPs'
-    shortest period, as :func:`gp_inconsistency` averages), up to ``gp_single_match_passes``
-    passes or until every scale is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the
+    shortest period, as :func:`gp_inconsistency` averages), up to ``passes`` (tuning
+    ``gp_single_match_passes``) filter runs by ``rerun`` (R -> history) or until every scale is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the
     sensor's R). The sensor's R is wrong there both ways: the GP's mean has averaged the
     sensor's noise out, and its own error (a phase walk of ~1e-3 rad over the 375-s window
     at 0.05 Hz) is mostly a motion the filter follows. Measured on the four one-GP runs of
@@ -604,14 +595,14 @@ def _matched_single_gp(
     sensor's 0.51, 1 % alone 5.1; one scale over the whole loss 0.57-0.68 (the NIS 1.3 early
     in the loss, 0.65 late); matched per window, run 12: 0.984 after three passes (NEES/dof
     0.689 -> 0.728). The NIS on those epochs is then matched, not a test; the NEES is."""
-    if tun.gp_single_match_passes == 0:
+    if passes == 0:
         return hist, Rp
     single = pseudo & ~np.any(extra > 0, axis=(1, 2))
     pm = single[:, None, None] & np.isfinite(zp) & ~np.isfinite(z)
     if not pm.any():
         return hist, Rp
     ks = np.flatnonzero(single)
-    for _ in range(tun.gp_single_match_passes):
+    for _ in range(passes):
         ok = (hist.nis_dof[ks] > 0) & np.isfinite(hist.nis[ks])
         if not ok.any():
             break
@@ -621,13 +612,10 @@ def _matched_single_gp(
         c = np.where(np.isfinite(c), c, 1.0)
         if np.all(np.abs(c - 1.0) < 0.1):
             break
-        scale = np.ones(len(t))
+        scale = np.ones(len(pseudo))
         scale[ks] = c
         Rp = np.where(pm, scale[:, None, None] * Rp, Rp)
-        prep = dataclasses.replace(prep, R_diag=Rp)
-        hist = ukf_filter.run_ukf(
-            scenario, t, zp, Rp, tun.variant, tun_r, geom, prepared=prep, consider=consider
-        )
+        hist = rerun(Rp)
     return hist, Rp
 
 
@@ -768,26 +756,25 @@ class KabirUKFGP:
         if honest and pseudo.any():
             # second pass: the pseudo-measurements' R carries the GP's error measured along
             # the first pass (the linearisation point; the GP predictions are the same)
+
+            def rerun(R: Array) -> EstimateHistory:
+                return ukf_filter.run_ukf(
+                    scenario,
+                    t,
+                    zp,
+                    R,
+                    tun.variant,
+                    tun_r,
+                    geom,
+                    prepared=dataclasses.replace(prep, R_diag=R),
+                    consider=consider,
+                )
+
             Rp = pseudo_r(Rp, extra)
-            prep = dataclasses.replace(prep, R_diag=Rp)
-            hist = ukf_filter.run_ukf(
-                scenario, t, zp, Rp, tun.variant, tun_r, geom, prepared=prep, consider=consider
-            )
+            hist = rerun(Rp)
+            window = _gp_window(models, float(np.median(np.diff(t))))
             hist, Rp = _matched_single_gp(
-                hist,
-                scenario,
-                t,
-                z,
-                zp,
-                Rp,
-                extra,
-                pseudo,
-                tun,
-                tun_r,
-                geom,
-                prep,
-                consider,
-                _gp_window(models, float(np.median(np.diff(t)))),
+                hist, rerun, z, zp, Rp, extra, pseudo, tun.gp_single_match_passes, window
             )
         if hist.P is not None:
             lay = hist.layout
