@@ -188,6 +188,14 @@ def test_pseudo_measurements_follow_the_true_projections(runs):
     np.testing.assert_array_equal(Rq[~occluded], R[~occluded])
     assert np.all(Rq[occluded][..., :5] > (0.1 * sigma_p) ** 2)
     np.testing.assert_array_equal(Rq[occluded][..., 5:], tun.sigma_flow_rad_s**2)
+    # without the copies (gp_drift_in_r): v_L, the disparity and v_L's flow are functions of
+    # the GP's three outputs, not measurements of their own; left out where predicted only
+    zc, Rc, _ = ukf_gp.pseudo_measurements(t, z, R, models, tun, sigma_p, copies=False)
+    np.testing.assert_array_equal(zc[~occluded], z[~occluded])
+    np.testing.assert_array_equal(Rc, Rp)
+    assert np.isnan(zc[occluded][..., [3, 4, 8]]).all()
+    kept = [0, 1, 2, 5, 6, 7]
+    np.testing.assert_array_equal(zc[occluded][..., kept], zp[occluded][..., kept])
 
 
 @pytest.mark.parametrize("unusable", ["failed", "flagged"])

@@ -38,7 +38,10 @@ addition, issue 18: Kabir 2025's truth is torque-free, ours carries the scenario
 * The rest is each GP's own extrapolation error, measured at every epoch by the residual no
   rigid motion explains (:func:`gp_inconsistency`): it is their R in a second filter pass
   (without the sensor's noise, which the GP's mean averages out: :func:`pseudo_r`) and,
-  through one epoch's least squares, goes into the reported covariance.
+  through one epoch's least squares, goes into the reported covariance. Only the GP's own
+  outputs ``[u_R, v_R, u_L]`` and their flows are used: Kabir's ``v_L = v_R``, disparity and
+  ``v_L`` flow repeat them with independent variances, counting the same error twice
+  (:func:`pseudo_measurements` ``copies``).
 * Where a single GP predicts, nothing disagrees with it: its R is matched to the filter's
   innovations instead (:func:`_matched_single_gp`, covariance matching over the GPs' shortest
   period; tuning ``gp_single_match_passes``), so the NIS there is matched, not a test.
@@ -103,7 +106,8 @@ class UKFGPTuning(ukf_tuning.KabirTuning):
     gp_drift_in_r: bool = Field(
         True,
         description="the pseudo-measurements' error model: the GPs' own error (their "
-        "disagreement no rigid motion explains) in their R (a second filter pass), and no "
+        "disagreement no rigid motion explains) in their R (a second filter pass), only the GP's "
+        "own outputs u_R, v_R, u_L and their flows (not the copies v_L, disparity), and no "
         "update of the inertia and features where nothing is really measured (consider "
         "parameters); false: the paper's R and update. Either way the reported covariance "
         "carries the fitted motion's error under the scenario's random torque and the GPs' own",
@@ -160,6 +164,11 @@ def train_feature_models(
     return [_fit_one(j) for j in jobs]
 
 
+# the pseudo-measurement components that copy or difference the GP's outputs [u_R, v_R, u_L]:
+# v_L (= v_R), the disparity (u_L - u_R) and v_L's flow (= v_R's)
+_GP_COPIES = [3, 4, 8]
+
+
 def pseudo_measurements(
     t: Array,
     z: Array,
@@ -167,9 +176,16 @@ def pseudo_measurements(
     models: list[gpm.GPFit | str],
     tun: UKFGPTuning,
     sigma_p: float,
+    copies: bool = True,
 ) -> tuple[Array, Array, list[int]]:
     """Fill every unobserved feature epoch of ``z``/``R`` (n, N, 9) with GP predictions
-    (Kabir 2025 Algorithm 2 steps 4-5 and eq. 27); returns the features left without one."""
+    (Kabir 2025 Algorithm 2 steps 4-5 and eq. 27); returns the features left without one.
+
+    ``copies`` False leaves out (NaN) the components that are functions of the GP's three
+    outputs, not measurements of their own: ``v_L = v_R``, the disparity ``u_L - u_R`` and
+    ``v_L``'s flow. Kabir gives each its own independent variance, which counts the same GP
+    error twice (kabir_gp_geometry: NIS/dof 1.24 / 1.26 with them, 1.03 / 1.02 without, runs
+    0-1, docs/results/consistency.md)."""
     z, R = z.copy(), R.copy()
     dt = float(np.median(np.diff(t)))
     fallback = []
@@ -192,6 +208,8 @@ def pseudo_measurements(
         if not tun.use_disparity:  # as for the measurements (stereo_measurements)
             disparity = np.full_like(disparity, np.nan)
         zi = np.concatenate([w4, disparity, flow], axis=1)
+        if not copies:
+            zi[:, _GP_COPIES] = np.nan
         z[missing, i, :] = zi[missing]
         if tun.gp_variance == "predictive":
             v = var + (0.1 * sigma_p) ** 2
@@ -738,11 +756,13 @@ class KabirUKFGP:
         prep = ukf_filter.prepare(scenario, t, z, R, geom, tun)
         tun_r = prep.tuning
         assert isinstance(tun_r, UKFGPTuning)
-        zp, Rp, fallback = pseudo_measurements(t, z, prep.R_diag, models, tun_r, sigma_p)
+        honest = tun.gp_drift_in_r
+        zp, Rp, fallback = pseudo_measurements(
+            t, z, prep.R_diag, models, tun_r, sigma_p, copies=not honest
+        )
         prep = dataclasses.replace(prep, R_diag=Rp)
         real = np.any(np.isfinite(z[..., 0]), axis=1)
         pseudo = np.any(np.isfinite(zp[..., 0]), axis=1) & ~real  # only GP predictions
-        honest = tun.gp_drift_in_r
         # without a real measurement nothing new is learnt about the rigid parameters: the
         # GP's predictions come from the data the filter already used (and where no GP is
         # usable the filter only propagates)
