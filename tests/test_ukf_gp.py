@@ -198,6 +198,28 @@ def test_pseudo_measurements_follow_the_true_projections(runs):
     np.testing.assert_array_equal(zc[occluded][..., kept], zp[occluded][..., kept])
 
 
+def test_the_filter_uses_the_copies_only_in_the_papers_setting(runs, monkeypatch):
+    # gp_drift_in_r (the default) leaves v_L, the disparity and v_L's flow out of the
+    # pseudo-measurements (pseudo_measurements copies=False); the paper's setting keeps them.
+    # The same trained GPs for both; the history's NIS degrees of freedom say what was used.
+    meas, models = runs["meas"], runs["models"]
+    _, h_paper = runs["ukf-gp"]
+    monkeypatch.setattr(ukf_gp, "train_feature_models", lambda *a, **k: list(models))
+    s = kabir(gp_drift_in_r=True)
+    h = ukf_gp.KabirUKFGP().run(s, meas, np.random.default_rng(0))
+    t = np.asarray(h.t)
+    loss = (t > LOSS + 5.0) & (t < t[-1] - 5.0)  # away from the flows' dropped edges
+    n = len(models)
+    # per feature: with the copies [u_R, v_R, u_L, v_L, d] + four flows, without them
+    # [u_R, v_R, u_L] + three flows
+    np.testing.assert_array_equal(np.asarray(h_paper.nis_dof)[loss], 9 * n)
+    np.testing.assert_array_equal(np.asarray(h.nis_dof)[loss], 6 * n)
+    before = t < LOSS
+    np.testing.assert_array_equal(
+        np.asarray(h.nis_dof)[before], np.asarray(h_paper.nis_dof)[before]
+    )
+
+
 @pytest.mark.parametrize("unusable", ["failed", "flagged"])
 def test_an_unusable_gp_falls_back_to_propagation(runs, monkeypatch, unusable):
     # feature 2's GP either could not be trained (train_feature_models' failure string) or
