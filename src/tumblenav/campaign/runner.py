@@ -212,6 +212,7 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
     """Cancel what has not started and terminate the workers now (SIGTERM, then SIGKILL
     after 1 s): runs in flight are lost, stored runs are whole (written atomically)."""
     procs = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() drops it
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
         if proc.is_alive():
@@ -222,6 +223,13 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
         if proc.is_alive():
             proc.kill()
             proc.join(1.0)
+    # The pool's manager thread closes its wake-up pipe as it ends; the interpreter's exit
+    # hook (concurrent.futures.process._python_exit) writes to that pipe unlocked, so on
+    # CPython < 3.12 an exit while the thread is still ending printed "Exception ignored
+    # ... OSError: [Errno 9] Bad file descriptor" after Ctrl-C (cpython gh-125451 added
+    # the lock). With its workers gone the thread ends at once: wait for it.
+    if manager is not None:
+        manager.join(2.0)
 
 
 def scenario_hash(scenario: Scenario) -> str:
