@@ -202,3 +202,20 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0].lower()
     except (OSError, IndexError):
         return "gone"
+
+
+def test_a_workers_warnings_are_printed_as_the_command_prints_its_own(capsys):
+    # a worker process's warnings (e.g. ukf-gp's "no usable GP ...") as one line, without
+    # Python's "path:line: UserWarning:" and the source line beneath it
+    import warnings
+
+    previous = warnings.showwarning
+    try:
+        warnings.showwarning = runner._show_warning
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.warn("no usable GP for feature(s) [1, 2]: pure propagation", stacklevel=1)
+    finally:
+        warnings.showwarning = previous
+    err = capsys.readouterr().err
+    assert err == "warning: no usable GP for feature(s) [1, 2]: pure propagation\n"

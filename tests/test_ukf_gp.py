@@ -236,6 +236,8 @@ def test_an_unusable_gp_falls_back_to_propagation(runs, monkeypatch, unusable):
     n_occluded = int(np.sum(h.t >= LOSS))
     assert h.info["gp_fallback"] == [2]
     assert h.skipped["gp_fallback_features"] == 1
+    # kept with the run too, so that a campaign counts the runs that said it
+    assert any("no usable GP for feature(s) [2]" in w for w in h.info["warnings"])
     assert h.skipped["unobserved_feature_epochs"] == n_occluded  # feature 2, occluded epochs
     assert h.skipped["no_measurement_epochs"] == 0
     assert h.info["gp"][2]["ok"] is False and h.info["gp"][2]["reason"]

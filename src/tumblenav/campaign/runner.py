@@ -24,8 +24,10 @@ import hashlib
 import os
 import secrets
 import signal
+import sys
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -206,6 +208,21 @@ def _worker_init() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     # one worker per core already: a renderer's second thread would only contend
     os.environ.setdefault("TUMBLENAV_RENDER_THREADS", "1")
+    warnings.showwarning = _show_warning
+
+
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+) -> None:
+    """A worker's warnings (an estimator's "no usable GP ...") as the command prints its own,
+    ``warning: message`` on one line, not Python's ``path:line: UserWarning:`` and the source
+    line beneath it."""
+    print(f"warning: {message}", file=sys.stderr if file is None else file, flush=True)
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:

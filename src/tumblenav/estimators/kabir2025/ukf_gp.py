@@ -742,16 +742,16 @@ class KabirUKFGP:
         sigma_p = float(np.sqrt(np.nanmax(R[..., 0])))
         models = train_feature_models(t, w[..., :3], sigma_p, tun.gp_candidates, tun.gp_workers)
         summaries = []
+        said: list[str] = []  # the GPs' warnings: said at the end and kept in info["warnings"]
         for i, m in enumerate(models):
             seen = t[np.all(np.isfinite(w[:, i, :3]), axis=-1)]
             T_train = float(seen[-1] - seen[0]) if len(seen) else 0.0
             summaries.append(_model_summary(m, T_train))
             if not isinstance(m, str) and m.ok and T_train < 3.0 * float(m.periods_s.max()):
-                warnings.warn(
+                said.append(
                     f"feature {i}: GP trained on {T_train:.0f} s, less than 3 of its longest "
                     f"period ({m.periods_s.max():.0f} s); Kabir 2025 Sec. 3.1 needs T_train >= "
-                    "3 T_p for reliable long predictions",
-                    stacklevel=2,
+                    "3 T_p for reliable long predictions"
                 )
         prep = ukf_filter.prepare(scenario, t, z, R, geom, tun)
         tun_r = prep.tuning
@@ -806,17 +806,19 @@ class KabirUKFGP:
                 coast = ~real & ~np.any(np.isfinite(zp[..., 0]), axis=1)
                 if coast.any():
                     _coasts_actual(hist, t, real, coast, Pf, Pa, moving_q(hist.layout, tun_r))
-        for line in prep.warnings:
-            warnings.warn(line, stacklevel=2)
         hist.skipped["gp_fallback_features"] = len(fallback)
         hist.info["gp"] = summaries
         hist.info["gp_fallback"] = fallback
         if fallback:
-            warnings.warn(
+            said.append(
                 f"no usable GP for feature(s) {fallback}: pure propagation for them during the "
-                "occlusion",
-                stacklevel=2,
+                "occlusion"
             )
+        for line in [*prep.warnings, *said]:
+            warnings.warn(line, stacklevel=2)
+        # as the UKF keeps its own (run_ukf: the tuning's): a campaign counts the runs that
+        # said each line (summary.json estimator_warnings)
+        hist.info["warnings"] = [*(hist.info.get("warnings") or []), *said]
         return hist
 
 
