@@ -604,8 +604,8 @@ def _matched_single_gp(
     innovations (covariance matching, Mehra 1970): each pass scales that R at each epoch by
     the NIS/dof the previous pass had over a centred ``window`` of those epochs (the GPs'
     shortest period, as :func:`gp_inconsistency` averages), up to ``passes`` (tuning
-    ``gp_single_match_passes``) filter runs by ``rerun`` (R -> history) or until every scale is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the
-    sensor's R). The sensor's R is wrong there both ways: the GP's mean has averaged the
+    ``gp_single_match_passes``) filter runs by ``rerun`` (R -> history) or until every scale
+    is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the sensor's R). The sensor's R is wrong there both ways: the GP's mean has averaged the
     sensor's noise out, and its own error (a phase walk of ~1e-3 rad over the 375-s window
     at 0.05 Hz) is mostly a motion the filter follows. Measured on the four one-GP runs of
     kabir_gp_rate005 (runs 3, 11, 12, 19; NIS/dof over 1125-1500 s, a session script with
@@ -814,11 +814,11 @@ class KabirUKFGP:
                 f"no usable GP for feature(s) {fallback}: pure propagation for them during the "
                 "occlusion"
             )
-        for line in [*prep.warnings, *said]:
-            warnings.warn(line, stacklevel=2)
-        # as the UKF keeps its own (run_ukf: the tuning's): a campaign counts the runs that
-        # said each line (summary.json estimator_warnings)
+        # kept with the run as the UKF keeps its own (run_ukf: the tuning's), so that a
+        # campaign counts the runs that said each line (summary.json estimator_warnings)
         hist.info["warnings"] = [*(hist.info.get("warnings") or []), *said]
+        for line in hist.info["warnings"]:
+            warnings.warn(line, stacklevel=2)
         return hist
 
 
