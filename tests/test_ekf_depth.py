@@ -188,3 +188,37 @@ def test_plane_threshold_rule_and_former_keys():
         InputError, match="estimator.tuning.frontend.plane_threshold_m: .*'range_noise'"
     ):
         base.parse_tuning({"plane_threshold_m": -1.0}, D.DepthTuning)
+
+
+def test_given_inertia_ratios_the_truth_contradicts_are_flagged():
+    """A copy of yu2019 with another target inertia keeps yu2019's given ratios, which with
+    inertia_init_perturb (Yu's protocol) stand for the truth: the summary's warnings say so.
+    Without the perturbation the ratios are a prior, flagged beyond 3 sigma; the built-in, the
+    sphere start and a half turn's sign flip of the products do not warn."""
+    from types import SimpleNamespace
+
+    from tumblenav.evaluation import assumption_warnings, states_prior
+    from tumblenav.scenario import load_scenario
+
+    sc = load_scenario("yu2019")
+    tuning = dict(sc.estimator.tuning or {})
+    assert tuning["inertia_init_perturb"] and tuning["P0_sigma_inertia"] == 0.1
+    assert states_prior(tuning) and not states_prior({"inertia_init": "sphere"})
+    built_in = SimpleNamespace(inertia_T=sc.target.inertia_matrix)
+    assert assumption_warnings(tuning, built_in) == []
+    other = SimpleNamespace(inertia_T=np.diag([40.0, 25.0, 30.0]))  # ratios 0.625, 0.75
+    (w,) = assumption_warnings(tuning, other)
+    assert "inertia_init_ratios" in w and "inertia_init: sphere" in w and "0.125" in w
+    assert assumption_warnings({**tuning, "inertia_init": "sphere"}, other) == []
+    prior = {**tuning, "inertia_init_perturb": False}  # a prior: 0.125 off is 1.25 sigma
+    assert assumption_warnings(prior, other) == []
+    assert assumption_warnings({**prior, "P0_sigma_inertia": 0.04}, other)  # 3.1 sigma
+    # products of inertia: a half turn about x flips Ixy and Ixz (the filter's frame may be
+    # any of the model's half turns); other products warn
+    J = SimpleNamespace(
+        inertia_T=np.array([[30.0, 3.0, -1.5], [3.0, 15.0, 0.6], [-1.5, 0.6, 20.0]])
+    )
+    turned = [0.5, 20 / 30, -0.1, 0.05, 0.02]
+    assert assumption_warnings({**tuning, "inertia_init_ratios": turned}, J) == []
+    wrong = [0.5, 20 / 30, 0.1, -0.05, -0.02]  # only Iyz flipped: no half turn does that
+    assert assumption_warnings({**tuning, "inertia_init_ratios": wrong}, J)

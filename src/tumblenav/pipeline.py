@@ -346,7 +346,7 @@ def run_montecarlo(
     )
     summary["warnings"] = assess(summary)
     tuning = scenario.estimator.tuning or {}
-    if any(tuning.get(k) is not None for k in evaluation.ASSUMPTIONS):  # a stated prior
+    if evaluation.states_prior(tuning):
         streams0 = run_streams(run_seed(scenario.montecarlo.seed, 0))
         truth0 = simulate_truth(scenario, streams0["features"], streams0["truth"])
         summary["warnings"] += evaluation.assumption_warnings(tuning, truth0)

@@ -76,13 +76,68 @@ ASSUMPTIONS = {
 }
 
 
+# ekf-depth's half turns about x, y, z (its symmetric frames) flip these signs of the
+# products of inertia [Ixy, Ixz, Iyz]; the diagonal ratios stay
+_HALF_TURN_PRODUCT_SIGNS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+
+
+def states_prior(tuning: dict[str, Any] | None) -> bool:
+    """True when ``tuning`` states a prior :func:`assumption_warnings` checks."""
+    tuning = tuning or {}
+    return tuning.get("inertia_init") == "given" or any(
+        tuning.get(k) is not None for k in ASSUMPTIONS
+    )
+
+
+def _inertia_ratio_warning(tuning: dict[str, Any], truth: Any) -> list[str]:
+    """ekf-depth's given inertia ratios (``inertia_init: given``, Yu 2019 eq. 29's
+    [Iyy/Ixx, Izz/Ixx, Ixy/Ixx, Ixz/Ixx, Iyz/Ixx]) against the truth's, in the closest of the
+    model's half-turn frames: with ``inertia_init_perturb`` (Yu's protocol, the truth plus an
+    error drawn from P0) they stand for the truth, so any difference over 1e-3 contradicts it;
+    without, they are a prior, contradicted beyond 3 of its stated sigma. A copied scenario
+    whose target was changed keeps the old ratios, and the filter trusts them."""
+    if tuning.get("inertia_init") != "given" or tuning.get("inertia_init_ratios") is None:
+        return []
+    stated = np.asarray(tuning["inertia_init_ratios"], dtype=float)
+    inertia = np.asarray(getattr(truth, "inertia_T", np.full((3, 3), np.nan)), dtype=float)
+    if stated.shape != (5,) or inertia.shape != (3, 3) or not inertia[0, 0] > 0:
+        return []
+    J = inertia / inertia[0, 0]
+    diag, prod = np.array([J[1, 1], J[2, 2]]), np.array([J[0, 1], J[0, 2], J[1, 2]])
+    sigma = tuning.get("P0_sigma_inertia", "inertia_init")
+    if not isinstance(sigma, (int, float)):
+        sigma = tuning.get("P0_sigma_inertia_given", 0.1)  # DepthTuning's default
+    off = min(
+        float(np.max(np.abs(stated - np.r_[diag, signs * prod])))
+        for signs in _HALF_TURN_PRODUCT_SIGNS
+    )
+    perturb = bool(tuning.get("inertia_init_perturb", False))
+    if off <= (1e-3 if perturb else 3.0 * float(sigma)):
+        return []
+    true = np.round(np.r_[diag, prod], 4).tolist()
+    said = (
+        "with inertia_init_perturb they stand for the truth (the start adds an error drawn "
+        f"from P0, sigma {float(sigma):g})"
+        if perturb
+        else f"more than 3 times their stated sigma {float(sigma):g}"
+    )
+    return [
+        f"estimator.tuning.inertia_init_ratios {np.round(stated, 4).tolist()} differ from the "
+        f"simulated target's {true} (target.inertia_kg_m2) by up to {off:.3g}; {said}, and "
+        "the filter starts from them as known to that sigma (inertia_init: given): if the "
+        "target's inertia is not meant to be known, set inertia_init: sphere, otherwise give "
+        "the target's ratios"
+    ]
+
+
 def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
     """Priors a user stated in an estimator's settings that the simulated truth contradicts
     (one line each). A simulation may test a wrong prior on purpose, so this only warns:
     Kabir 2025's known mass centre (``mass_centre_L_m``, ``mass_centre_velocity_L_m_s``)
-    against the truth's ``r_L``, ``v_L`` at the first epoch."""
+    against the truth's ``r_L``, ``v_L`` at the first epoch; ekf-depth's given inertia
+    ratios against the truth's inertia."""
     tuning = tuning or {}
-    out = []
+    out = _inertia_ratio_warning(tuning, truth)
     for key, (attr, unit, tol) in ASSUMPTIONS.items():
         if tuning.get(key) is None:
             continue
