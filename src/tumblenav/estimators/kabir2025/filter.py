@@ -272,7 +272,8 @@ class _UKFModel:
         if world.any():
             x, P, rep_b = self._change_chart(x, P, world, to_world=False)
             rep |= rep_b
-        x, P = canonical_axes(x, P, self.additive)
+        if self.tun.relabel_axes:
+            x, P = canonical_axes(x, P, self.additive)
         if not self.additive:
             P = _cap_attitude(P)
         nis = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
