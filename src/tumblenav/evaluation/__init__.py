@@ -11,7 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from tumblenav.estimators.base import EstimateHistory
+from tumblenav.errors import InputError
+from tumblenav.estimators.base import EstimateHistory, parse_tuning
+from tumblenav.estimators.yu2019.tuning import DepthTuning, _sigma_inertia
 from tumblenav.evaluation.alignment import (
     align,
     register_alignment,
@@ -96,30 +98,29 @@ def _inertia_ratio_warning(tuning: dict[str, Any], truth: Any) -> list[str]:
     error drawn from P0) they stand for the truth, so any difference over 1e-3 contradicts it;
     without, they are a prior, contradicted beyond 3 of its stated sigma. A copied scenario
     whose target was changed keeps the old ratios, and the filter trusts them."""
-    if tuning.get("inertia_init") != "given" or tuning.get("inertia_init_ratios") is None:
+    if tuning.get("inertia_init") != "given":
         return []
-    stated = np.asarray(tuning["inertia_init_ratios"], dtype=float)
-    inertia = np.asarray(getattr(truth, "inertia_T", np.full((3, 3), np.nan)), dtype=float)
-    if stated.shape != (5,) or inertia.shape != (3, 3) or not inertia[0, 0] > 0:
-        return []
-    J = inertia / inertia[0, 0]
+    try:  # the settings as ekf-depth reads them (its defaults and its P0 rule)
+        tun = parse_tuning(tuning, DepthTuning)
+    except InputError:
+        return []  # not ekf-depth's: the estimator says what is wrong with them
+    stated = np.asarray(tun.inertia_init_ratios, dtype=float)
+    J = np.asarray(truth.inertia_T, dtype=float)
+    J = J / J[0, 0]
     diag, prod = np.array([J[1, 1], J[2, 2]]), np.array([J[0, 1], J[0, 2], J[1, 2]])
-    sigma = tuning.get("P0_sigma_inertia", "inertia_init")
-    if not isinstance(sigma, (int, float)):
-        sigma = tuning.get("P0_sigma_inertia_given", 0.1)  # DepthTuning's default
+    sigma = _sigma_inertia(tun)
     off = min(
         float(np.max(np.abs(stated - np.r_[diag, signs * prod])))
         for signs in _HALF_TURN_PRODUCT_SIGNS
     )
-    perturb = bool(tuning.get("inertia_init_perturb", False))
-    if off <= (1e-3 if perturb else 3.0 * float(sigma)):
+    if off <= (1e-3 if tun.inertia_init_perturb else 3.0 * sigma):
         return []
     true = np.round(np.r_[diag, prod], 4).tolist()
     said = (
         "with inertia_init_perturb they stand for the truth (the start adds an error drawn "
-        f"from P0, sigma {float(sigma):g})"
-        if perturb
-        else f"more than 3 times their stated sigma {float(sigma):g}"
+        f"from P0, sigma {sigma:g})"
+        if tun.inertia_init_perturb
+        else f"more than 3 times their stated sigma {sigma:g}"
     )
     return [
         f"estimator.tuning.inertia_init_ratios {np.round(stated, 4).tolist()} differ from the "

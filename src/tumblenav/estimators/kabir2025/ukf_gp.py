@@ -605,9 +605,10 @@ def _matched_single_gp(
     the NIS/dof the previous pass had over a centred ``window`` of those epochs (the GPs'
     shortest period, as :func:`gp_inconsistency` averages), up to ``passes`` (tuning
     ``gp_single_match_passes``) filter runs by ``rerun`` (R -> history) or until every scale
-    is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the sensor's R). The sensor's R is wrong there both ways: the GP's mean has averaged the
-    sensor's noise out, and its own error (a phase walk of ~1e-3 rad over the 375-s window
-    at 0.05 Hz) is mostly a motion the filter follows. Measured on the four one-GP runs of
+    is within 10 % of 1 (tumblenav's; Kabir 2025 keeps the sensor's R). The sensor's R is
+    wrong there both ways: the GP's mean has averaged the sensor's noise out, and its own
+    error (a phase walk of ~1e-3 rad over the 375-s window at 0.05 Hz) is mostly a motion
+    the filter follows. Measured on the four one-GP runs of
     kabir_gp_rate005 (runs 3, 11, 12, 19; NIS/dof over 1125-1500 s, a session script with
     the GPs cached): the sensor's R 0.135, the GP's posterior variance plus 1 % of the
     sensor's 0.51, 1 % alone 5.1; one scale over the whole loss 0.57-0.68 (the NIS 1.3 early
