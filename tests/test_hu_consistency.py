@@ -129,3 +129,52 @@ def test_nis_alarm_flags_innovations_that_do_not_fit():
     assert a[1050:1200].all() and not a[:1000].any() and not a[1300:].any()
     dof[:10] = 0  # no update: no window, no alarm
     assert not nis_alarm(t, np.full(2000, np.nan), np.zeros(2000)).any()
+
+
+def test_start_covariance_is_positive_definite_at_1e6_rad():
+    """hu2024 at 1e-6 rad (the paper's lowest noise), run 231 of seed 2024: the joint start
+    holds the mass centre to centimetres and the shape to micrometres; assembled from its
+    parts, its covariance had an eigenvalue at -2.6e-10 (correlation), which the precise
+    updates grew until the filter broke (NIS < 0) and kept the mass centre 0.1 m off at a
+    1-sigma of 1 mm (NEES/dof 3e4). init.positive_definite floors it (issue 18)."""
+    from threadpoolctl import threadpool_limits
+
+    from tumblenav.estimators.hu2024.init import positive_definite
+
+    s = (
+        load_scenario("hu2024")
+        .with_updates(**HU2024_PAPER)
+        .with_updates(
+            **{"sensor.noise.angular_rad": 1e-6},
+            duration_s=60.0,
+            steady_state_window_s=[45.0, 60.0],
+        )
+    )
+    with threadpool_limits(limits=1, user_api="blas"):  # the failing run's round-off
+        tr, m = simulate(s, run_seed(2024, 231))
+        res = hu.run_filter(s, [m], True, p_every=1)
+    k0 = int(res["k0"][0])
+    P = res["P"][0, k0]
+    sd = np.sqrt(np.diag(P))
+    assert np.linalg.eigvalsh(P / np.outer(sd, sd))[0] > 0
+    assert not res["diverged"][0]
+    assert np.all(res["nis"][0][np.isfinite(res["nis"][0])] >= 0)
+    from tumblenav import evaluation
+
+    _, err = evaluation.error_states(hu.histories(res, s), [tr])
+    t = res["t"]
+    kk = np.flatnonzero(t >= 45.0)
+    e, Pw = err[0, kk, 9:12], res["P"][0, kk][:, 9:12, 9:12]
+    nees = np.einsum("ki,ki->k", e, np.linalg.solve(Pw, e[..., None])[..., 0]) / 3
+    assert np.mean(nees) < 3.0  # 3e4 before the floor
+    # the floor: a positive definite P is returned as is, an indefinite one raised
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    Q = A @ A.T + np.eye(6)
+    assert positive_definite(Q) is Q
+    V = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    bad = (V * np.array([-1e-9, 1e-3, 1, 2, 3, 4])) @ V.T
+    fixed = positive_definite(bad)
+    sd = np.sqrt(np.diag(fixed))
+    assert np.linalg.eigvalsh(fixed / np.outer(sd, sd))[0] >= 1e-10 * (1 - 1e-6)
+    assert np.allclose(fixed, bad, atol=1e-8)
