@@ -22,6 +22,7 @@ Usage: python benchmarks/hu2024_diagnostics.py frame|ratios|g [--runs 40 | --run
        python benchmarks/hu2024_diagnostics.py start --run 475 [--run ...] [--noise 2e-5]
        python benchmarks/hu2024_diagnostics.py branches --runs 500 [--noise 2e-5]
        [--set key=value ...]  (estimator.tuning overrides, YAML values)
+       [--scenario NAME_OR_YAML]  (default hu2024; its own noise unless --noise)
 Last line: ``frame_nees_mean=<last window>`` / ``g_nees_mean=<last window>`` / ``ratio_nees_start_mean=<...>`` /
 ``start_attitude_err_over_sigma=<first run, at the start>`` / ``expected_flips=<sum p> flips=<runs>``
 """
@@ -96,10 +97,13 @@ def main() -> None:
     ap.add_argument("what", choices=["frame", "ratios", "start", "branches", "g"])
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--run", type=int, action="append", default=[])
-    ap.add_argument("--noise", type=float, default=2e-5)
+    ap.add_argument("--noise", type=float, default=None, help="rad (default: hu2024's 2e-5)")
+    ap.add_argument("--scenario", default="hu2024", help="a built-in name or a YAML path")
     ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    sc = with_tuning(load_scenario("hu2024"), args.set, **{"sensor.noise.angular_rad": args.noise})
+    noise = {} if args.noise is None and args.scenario != "hu2024" else {
+        "sensor.noise.angular_rad": 2e-5 if args.noise is None else args.noise}
+    sc = with_tuning(load_scenario(args.scenario), args.set, **noise)
     ks = args.run if args.run else list(range(args.runs))
     if args.what == "branches":
         branch_calibration(sc, ks)
