@@ -101,8 +101,11 @@ def main() -> None:
     ap.add_argument("--scenario", default="hu2024", help="a built-in name or a YAML path")
     ap.add_argument("--set", action="append", default=[], help="tuning key=value")
     args = ap.parse_args()
-    noise = {} if args.noise is None and args.scenario != "hu2024" else {
-        "sensor.noise.angular_rad": 2e-5 if args.noise is None else args.noise}
+    noise = (
+        {}
+        if args.noise is None and args.scenario != "hu2024"
+        else {"sensor.noise.angular_rad": 2e-5 if args.noise is None else args.noise}
+    )
     sc = with_tuning(load_scenario(args.scenario), args.set, **noise)
     ks = args.run if args.run else list(range(args.runs))
     if args.what == "branches":

@@ -34,6 +34,7 @@ from tumblenav.estimators.yu2019.model import (
     _propagate,
     filter_layout,
     measurement,
+    measurement_second_order,
     physical_inertia,
     spin_axis_fixed,
     unexcited_ratios,
@@ -377,6 +378,12 @@ class DepthSteps:
             extra = H[:, LAYOUT.dim :] @ x[LAYOUT.nominal_dim :]
             nu = np.r_[rot.boxminus(q_meas, x[_X_ATT]), p_ML - y] - extra
             R = T @ noise.cov(scales) @ T.T
+            if tun.second_order_fixes:
+                # the origin's terms of second order in (attitude, offset): their mean and
+                # covariance (Gaussian second-order filter; beyond Yu 2019)
+                m2, C2 = measurement_second_order(x, P, R_LI[k])
+                R[3:, 3:] += C2
+                nu[3:] -= m2
             S = H @ P @ H.T + R
             d2 = nu @ np.linalg.solve(S, nu)
             if tun.multi_solution_fix and d2 > chi2.ppf(tun.gate_probability, 6):
