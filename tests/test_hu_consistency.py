@@ -178,3 +178,4 @@ def test_start_covariance_is_positive_definite_at_1e6_rad():
     sd = np.sqrt(np.diag(fixed))
     assert np.linalg.eigvalsh(fixed / np.outer(sd, sd))[0] >= 1e-10 * (1 - 1e-6)
     assert np.allclose(fixed, bad, atol=1e-8)
+    assert positive_definite(np.zeros((3, 3))).shape == (3, 3)  # nothing to floor

@@ -497,6 +497,8 @@ def positive_definite(P: Array, floor: float = START_CORR_FLOOR) -> Array:
     direction; runs whose start was positive definite are unchanged."""
     s = np.sqrt(np.maximum(np.diag(P), 0.0))
     ok = s > 0
+    if not ok.any():
+        return P
     S = np.outer(s[ok], s[ok])
     C = P[np.ix_(ok, ok)] / S
     w, V = np.linalg.eigh(0.5 * (C + C.T))

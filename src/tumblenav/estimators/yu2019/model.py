@@ -291,7 +291,7 @@ def measurement_second_order(x: Array, P: Array, R_LI: Array) -> tuple[Array, Ar
     rad/s and the offset to 0.1 m, so the neglected ``[dtheta x] db`` moves the origin by ~1 cm
     in the first scans; with a 1 mm range noise the first-order updates took it as
     information, and the translation and offset locked 0.1 m off at a 1-sigma of 2 mm
-    (NEES/dof 201 on yu2019 at 1 mm, 6.7 at 3 mm, 1.9 at 5 mm). Once the attitude and rate
+    (yu2019 at 1 mm: NEES/dof 230 over 10 runs; over runs 0-2 6.7 at 3 mm, 1.9 at 5 mm). Once the attitude and rate
     are known (a few scans) these terms vanish."""
     R_LT = R_LI @ rot.quat_to_matrix(x[_X_ATT]).T
     b = x[_X_OFFSET]
