@@ -28,13 +28,14 @@ from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate, target_model
 
 
-def one_run(sc, run: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def fix_errors(sc, run: int):
+    """Every fix of run ``run``: ``(k, fx, za, zp, ea)``, the scan, the fix, its whitened
+    attitude and origin errors in the rectangle frame, and its attitude error in T (rad)."""
     model, sigma = target_model(sc), sc.sensor.range_noise_m
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, run))
     rng = np.random.default_rng(run)
     R_CL, R_LI = rot.quat_to_matrix(meas.q_CL), rot.quat_to_matrix(meas.q_LI)
     b = np.asarray(truth.mass_centre_offset_T)
-    wp, wa, ks, gross = [], [], [], 0
     for k in range(len(meas.t)):
         R_LT = R_LI[k] @ rot.quat_to_matrix(truth.q_TI[k]).T
         origin_L = truth.r_L[k] - R_LT @ b
@@ -47,11 +48,22 @@ def one_run(sc, run: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
             q_meas = rot.matrix_to_quat((R_LI[k].T @ R_CL[k].T @ fx.R_SM).T)
             ea = rot.boxminus(q_meas, truth.q_TI[k])
             za = (fx.R_MP.T @ ea) / np.sqrt(np.diag(cov_att))
-            if zp @ zp > 30 or za @ za > 30:
-                gross += 1
-                continue
-            wp.append(zp), wa.append(za), ks.append(k)
-    return np.array(wp), np.array(wa), np.array(ks), gross
+            yield k, fx, za, zp, ea
+
+
+def gross(za: np.ndarray, zp: np.ndarray) -> bool:
+    """A wrong rectangle or case (d^2 > 30 on 3 dof), which the filter's NIS gate rejects."""
+    return bool(zp @ zp > 30 or za @ za > 30)
+
+
+def one_run(sc, run: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    wp, wa, ks, n_gross = [], [], [], 0
+    for k, _, za, zp, _ in fix_errors(sc, run):
+        if gross(za, zp):
+            n_gross += 1
+            continue
+        wp.append(zp), wa.append(za), ks.append(k)
+    return np.array(wp), np.array(wa), np.array(ks), n_gross
 
 
 def main() -> None:

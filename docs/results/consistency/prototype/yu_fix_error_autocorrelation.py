@@ -4,30 +4,14 @@ and same-epoch correlation between rectangles. Usage (repo root, venv active): p
 docs/results/consistency/prototype/yu_fix_error_autocorrelation.py SCENARIO RUNS"""
 import sys, numpy as np
 sys.path.insert(0, "benchmarks")
-from yu2019_fix_errors import *
+from yu2019_fix_errors import fix_errors, gross
 from tumblenav.scenario import load_scenario
 
 def run(sc, r):
-    model, sigma = target_model(sc), sc.sensor.range_noise_m
-    truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, r))
-    rng = np.random.default_rng(r)
-    R_CL, R_LI = rot.quat_to_matrix(meas.q_CL), rot.quat_to_matrix(meas.q_LI)
-    b = np.asarray(truth.mass_centre_offset_T)
     rec = {}
-    for k in range(len(meas.t)):
-        R_LT = R_LI[k] @ rot.quat_to_matrix(truth.q_TI[k]).T
-        origin_L = truth.r_L[k] - R_LT @ b
-        pts = meas.points[k][meas.observed[k]]
-        fixes, _ = pose_fixes(pts, model, 3 * sigma, rng, sigma, R_CL[k] @ R_LT)
-        for fx in fixes:
-            cov_att, cov_pos = fix_covariance(fx, sigma)
-            R_LP = R_CL[k].T @ fx.R_SM @ fx.R_MP
-            zp = (R_LP.T @ (R_CL[k].T @ fx.p_MinS - origin_L)) / np.sqrt(np.diag(cov_pos))
-            q_meas = rot.matrix_to_quat((R_LI[k].T @ R_CL[k].T @ fx.R_SM).T)
-            ea = rot.boxminus(q_meas, truth.q_TI[k])
-            za = (fx.R_MP.T @ ea) / np.sqrt(np.diag(cov_att))
-            if za @ za > 30 or zp@zp > 30: continue
-            rec.setdefault(fx.rectangle, {})[k] = np.r_[za, zp, ea]
+    for k, fx, za, zp, ea in fix_errors(sc, r):  # benchmarks/yu2019_fix_errors.py
+        if gross(za, zp): continue
+        rec.setdefault(fx.rectangle, {})[k] = np.r_[za, zp, ea]
     return rec
 
 if __name__ == "__main__":
