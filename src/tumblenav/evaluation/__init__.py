@@ -11,9 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from tumblenav.errors import InputError
-from tumblenav.estimators.base import EstimateHistory, parse_tuning
-from tumblenav.estimators.yu2019.tuning import DepthTuning, _sigma_inertia
+from tumblenav.estimators.base import EstimateHistory
+from tumblenav.estimators.yu2019.tuning import given_ratios_warning
 from tumblenav.evaluation.alignment import (
     align,
     register_alignment,
@@ -78,57 +77,12 @@ ASSUMPTIONS = {
 }
 
 
-# ekf-depth's half turns about x, y, z (its symmetric frames) flip these signs of the
-# products of inertia [Ixy, Ixz, Iyz]; the diagonal ratios stay
-_HALF_TURN_PRODUCT_SIGNS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
-
-
 def states_prior(tuning: dict[str, Any] | None) -> bool:
     """True when ``tuning`` states a prior :func:`assumption_warnings` checks."""
     tuning = tuning or {}
     return tuning.get("inertia_init") == "given" or any(
         tuning.get(k) is not None for k in ASSUMPTIONS
     )
-
-
-def _inertia_ratio_warning(tuning: dict[str, Any], truth: Any) -> list[str]:
-    """ekf-depth's given inertia ratios (``inertia_init: given``, Yu 2019 eq. 29's
-    [Iyy/Ixx, Izz/Ixx, Ixy/Ixx, Ixz/Ixx, Iyz/Ixx]) against the truth's, in the closest of the
-    model's half-turn frames: with ``inertia_init_perturb`` (Yu's protocol, the truth plus an
-    error drawn from P0) they stand for the truth, so any difference over 1e-3 contradicts it;
-    without, they are a prior, contradicted beyond 3 of its stated sigma. A copied scenario
-    whose target was changed keeps the old ratios, and the filter trusts them."""
-    if tuning.get("inertia_init") != "given":
-        return []
-    try:  # the settings as ekf-depth reads them (its defaults and its P0 rule)
-        tun = parse_tuning(tuning, DepthTuning)
-    except InputError:
-        return []  # not ekf-depth's: the estimator says what is wrong with them
-    stated = np.asarray(tun.inertia_init_ratios, dtype=float)
-    J = np.asarray(truth.inertia_T, dtype=float)
-    J = J / J[0, 0]
-    diag, prod = np.array([J[1, 1], J[2, 2]]), np.array([J[0, 1], J[0, 2], J[1, 2]])
-    sigma = _sigma_inertia(tun)
-    off = min(
-        float(np.max(np.abs(stated - np.r_[diag, signs * prod])))
-        for signs in _HALF_TURN_PRODUCT_SIGNS
-    )
-    if off <= (1e-3 if tun.inertia_init_perturb else 3.0 * sigma):
-        return []
-    true = np.round(np.r_[diag, prod], 4).tolist()
-    said = (
-        "with inertia_init_perturb they stand for the truth (the start adds an error drawn "
-        f"from P0, sigma {sigma:g})"
-        if tun.inertia_init_perturb
-        else f"more than 3 times their stated sigma {sigma:g}"
-    )
-    return [
-        f"estimator.tuning.inertia_init_ratios {np.round(stated, 4).tolist()} differ from the "
-        f"simulated target's {true} (target.inertia_kg_m2) by up to {off:.3g}; {said}, and "
-        "the filter starts from them as known to that sigma (inertia_init: given): if the "
-        "target's inertia is not meant to be known, set inertia_init: sphere, otherwise give "
-        "the target's ratios"
-    ]
 
 
 def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
@@ -138,7 +92,7 @@ def assumption_warnings(tuning: dict[str, Any] | None, truth: Any) -> list[str]:
     against the truth's ``r_L``, ``v_L`` at the first epoch; ekf-depth's given inertia
     ratios against the truth's inertia."""
     tuning = tuning or {}
-    out = _inertia_ratio_warning(tuning, truth)
+    out = given_ratios_warning(tuning, truth.inertia_T)
     for key, (attr, unit, tol) in ASSUMPTIONS.items():
         if tuning.get(key) is None:
             continue

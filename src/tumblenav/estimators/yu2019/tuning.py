@@ -8,7 +8,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from tumblenav.estimators.base import nest_front_end_keys
+from tumblenav.errors import InputError
+from tumblenav.estimators.base import nest_front_end_keys, parse_tuning
 from tumblenav.frontends.depth_pose import PlanesTuning
 from tumblenav.settings_rules import positive_or_rule
 
@@ -307,6 +308,52 @@ def _sigma_inertia(tun: DepthTuning) -> float:
     if tun.inertia_init == "given":
         return tun.P0_sigma_inertia_given
     return tun.P0_sigma_inertia_sphere
+
+
+# the half turns about x, y, z (the model's symmetric frames) flip these signs of the products
+# of inertia [Ixy, Ixz, Iyz]; the diagonal ratios stay
+_HALF_TURN_PRODUCT_SIGNS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+
+
+def given_ratios_warning(tuning: dict[str, Any], inertia_T: Any) -> list[str]:
+    """ekf-depth's given inertia ratios (``inertia_init: given``, Yu 2019 eq. 29's
+    [Iyy/Ixx, Izz/Ixx, Ixy/Ixx, Ixz/Ixx, Iyz/Ixx]) against the simulated target's
+    ``inertia_T`` (3, 3), in the closest of the model's half-turn frames (one line each, for
+    :func:`tumblenav.evaluation.assumption_warnings`): with ``inertia_init_perturb`` (Yu's protocol, the truth plus an
+    error drawn from P0) they stand for the truth, so any difference over 1e-3 contradicts it;
+    without, they are a prior, contradicted beyond 3 of its stated sigma. A copied scenario
+    whose target was changed keeps the old ratios, and the filter trusts them."""
+    if tuning.get("inertia_init") != "given":
+        return []
+    try:  # the settings as ekf-depth reads them (its defaults and its P0 rule)
+        tun = parse_tuning(tuning, DepthTuning)
+    except InputError:
+        return []  # not ekf-depth's: the estimator says what is wrong with them
+    stated = np.asarray(tun.inertia_init_ratios, dtype=float)
+    J = np.asarray(inertia_T, dtype=float)
+    J = J / J[0, 0]
+    diag, prod = np.array([J[1, 1], J[2, 2]]), np.array([J[0, 1], J[0, 2], J[1, 2]])
+    sigma = _sigma_inertia(tun)
+    off = min(
+        float(np.max(np.abs(stated - np.r_[diag, signs * prod])))
+        for signs in _HALF_TURN_PRODUCT_SIGNS
+    )
+    if off <= (1e-3 if tun.inertia_init_perturb else 3.0 * sigma):
+        return []
+    true = np.round(np.r_[diag, prod], 4).tolist()
+    said = (
+        "with inertia_init_perturb they stand for the truth (the start adds an error drawn "
+        f"from P0, sigma {sigma:g})"
+        if tun.inertia_init_perturb
+        else f"more than 3 times their stated sigma {sigma:g}"
+    )
+    return [
+        f"estimator.tuning.inertia_init_ratios {np.round(stated, 4).tolist()} differ from the "
+        f"simulated target's {true} (target.inertia_kg_m2) by up to {off:.3g}; {said}, and "
+        "the filter starts from them as known to that sigma (inertia_init: given): if the "
+        "target's inertia is not meant to be known, set inertia_init: sphere, otherwise give "
+        "the target's ratios"
+    ]
 
 
 def plane_threshold(tun: DepthTuning, range_noise_m: float) -> float:
