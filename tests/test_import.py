@@ -378,6 +378,14 @@ BAD = {
         lambda d: _tracks(d, _OK + "0.2,2,10.0,10.0,,\n"),
         ["tracks.csv", "feature 2", "one camera only", "one_camera_sightings"],
     ),
+    "pixel outside the image": (
+        lambda d: _tracks(d, _OK + "0.2,1,99999.0,10.0,5.0,10.0\n"),
+        ["tracks.csv", "feature 1", "99999", "outside the 64 x 48 image"],
+    ),
+    "infinite pixel": (
+        lambda d: _tracks(d, _OK + "0.2,1,inf,10.0,5.0,10.0\n"),
+        ["tracks.csv", "row 3", "u_left_px is infinite"],
+    ),
     "NaN pixel": (
         lambda d: _tracks(d, _OK + "0.2,1,10.0,nan,5.0,10.0\n"),
         ["tracks.csv", "row 3", "u_left_px or v_left_px"],

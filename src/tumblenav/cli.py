@@ -73,6 +73,15 @@ class StrictGroup(TyperGroup):
 
 
 _ARGV: list[str] = []  # the command line main() was given (recorded in summary.json)
+_OUTPUT: list[tuple[Path, float]] = []  # the command's output folder and its start time
+
+
+def _written_since(folder: Path, start: float) -> int:
+    """How many files under ``folder`` were written at or after ``start`` (epoch s)."""
+    try:
+        return sum(1 for f in folder.rglob("*") if f.is_file() and f.stat().st_mtime >= start)
+    except OSError:
+        return 0
 
 
 def _record(output: Path, report: bool = False) -> None:
@@ -89,6 +98,47 @@ def _record(output: Path, report: bool = False) -> None:
         from tumblenav.report import write_report
 
         out.print(f"report: {write_report(Path(output))}")
+
+
+def _check_output(output: Path, command: str) -> None:
+    """An output folder that cannot be used is bad input, found before any work starts (exit
+    2): an empty path, a file (or a path through one), a folder that cannot be written, or a
+    folder that holds another command's results which this one would replace in part (a
+    campaign's summary.json under a single estimate, or the reverse)."""
+    import time
+
+    _OUTPUT[:] = [(Path(output), time.time() - 1.0)]  # mtimes have a coarse resolution
+    where = "-o/--output"
+    # typer turns an empty path into "." (the current folder): look at what was typed
+    typed = [b for a, b in zip(_ARGV, _ARGV[1:], strict=False) if a in ("-o", "--output")]
+    typed += [a.split("=", 1)[1] for a in _ARGV if a.startswith("--output=")]
+    if not str(output).strip() or any(not t.strip() for t in typed):
+        raise InputError("an empty path: give a folder", where)
+    p = Path(output)
+    for q in (p, *p.parents):
+        if q.exists():
+            if not q.is_dir():
+                raise InputError(f"{q} is a file, not a folder", f"{where} {p}")
+            break
+    single = command in ("simulate", "estimate", "demo")
+    campaigns = [p / "campaign.json", *p.glob("*/campaign.json")] if p.is_dir() else []
+    if single and any(c.is_file() for c in campaigns):
+        raise InputError(
+            f"it holds a Monte Carlo campaign (campaign.json); {command} would replace its "
+            "summary: choose another folder",
+            f"{where} {p}",
+        )
+    if not single and (p / "estimates.nc").is_file():
+        raise InputError(
+            f"it holds the results of one estimate (estimates.nc); {command} would replace its "
+            "summary: choose another folder",
+            f"{where} {p}",
+        )
+    # nothing is created before the work starts (a refused command leaves no folder): the
+    # nearest existing folder must be writable (read-only mounts included, root or not)
+    existing = next((q for q in (p, *p.parents) if q.exists()), Path("."))
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write in {existing}", f"{where} {p}")
 
 
 def _version(value: bool) -> None:
@@ -177,11 +227,15 @@ def scenarios_show(name: Annotated[str, typer.Argument(help="built-in scenario n
 def simulate(
     scenario: ScenarioArg,
     output: OutOpt = Path("out/simulate"),
-    seed: Annotated[int | None, typer.Option(help="run seed (default: the scenario's)")] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="run seed (default: the scenario's)", min=0)
+    ] = None,
     plots: PlotsOpt = True,
 ) -> None:
     """Simulate the truth and the measurements; write truth.nc and measurements.nc."""
     from tumblenav.pipeline import run_simulate
+
+    _check_output(output, "simulate")
 
     files = run_simulate(scenario, output, seed=seed, plots=plots, console=err)
     for f in files:
@@ -196,11 +250,15 @@ def estimate(
     measurements: Annotated[
         Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
     ] = None,
-    seed: Annotated[int | None, typer.Option(help="run seed (default: the scenario's)")] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="run seed (default: the scenario's)", min=0)
+    ] = None,
     plots: PlotsOpt = True,
 ) -> None:
     """Estimate one run; write estimates.nc, summary.json and error figures."""
     from tumblenav.pipeline import print_summary, run_estimate
+
+    _check_output(output, "estimate")
 
     summary = run_estimate(
         scenario, estimator, output, measurements, seed, console=err, plots=plots
@@ -225,6 +283,8 @@ def montecarlo(
 ) -> None:
     """Seeded Monte Carlo campaign; resumable: rerun with the same -o to finish it."""
     from tumblenav.pipeline import print_summary, run_montecarlo
+
+    _check_output(output, "montecarlo")
 
     summary = run_montecarlo(
         scenario,
@@ -261,6 +321,8 @@ def compare(
     """Head to head: the same truth, measurements and seeds for every estimator; one table,
     overlaid figures; resumable (rerun with the same -o)."""
     from tumblenav.pipeline import print_comparison, run_compare
+
+    _check_output(output, "compare")
 
     summary = run_compare(
         scenario,
@@ -331,6 +393,8 @@ def reproduce(
     from tumblenav.papers import reproduce as rep
     from tumblenav.papers.table import print_comparison
 
+    _check_output(output, "reproduce")
+
     try:
         summary = rep(paper, output, runs=runs, workers=workers, scheduler=scheduler, console=err)
     except Interrupted as exc:
@@ -381,6 +445,8 @@ def demo(output: OutOpt = Path("out/demo")) -> None:
     """Run the main job on the built-in default scenario (hu2024) and say where results are."""
     from tumblenav.pipeline import run_demo
 
+    _check_output(output, "demo")
+
     run_demo(output, console=out)
 
 
@@ -405,6 +471,7 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point: exit 0 ok, 2 for an InputError or a usage error, 130/143 when interrupted
     (SIGINT/SIGTERM), 1 for anything unexpected; one line each, no traceback."""
     _ARGV[:] = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
+    _OUTPUT.clear()
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     _install_signal_handlers()
     try:
@@ -414,7 +481,16 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name
-        kept = exc.kept or "no result was written (files already in the output folder are whole)"
+        kept = exc.kept
+        if kept is None and _OUTPUT:
+            folder, start = _OUTPUT[0]
+            n = _written_since(folder, start)
+            if n:
+                kept = (
+                    f"{n} file(s) were written to {folder} before the interruption, each whole "
+                    "but the set incomplete; run the same command again to write them all"
+                )
+        kept = kept or "no result was written (files already in the output folder are whole)"
         err.print(
             f"[bold yellow]interrupted ({name}):[/] {escape(kept)}",
             highlight=False,

@@ -52,11 +52,41 @@ def run_simulate(
             files.append(figures.plot_image_pair(meas, output / "images.png", scenario.name))
         return files
     files.append(io.write_netcdf(meas.to_dataset(scenario.name), output / "measurements.nc"))
+    nothing = _nothing_seen(meas)
+    if nothing:
+        con.print(f"[bold yellow]warning:[/] {nothing}", highlight=False)
     if plots:
         files.append(figures.plot_truth(truth, output / "truth.png", f"{scenario.name}: truth"))
         plot = figures.plot_measurements if scenario.sensor.kind == "stereo" else figures.plot_depth
         files.append(plot(meas, output / "measurements.png", f"{scenario.name}: measurements"))
     return files
+
+
+def _estimator_name(estimator: str | None, scenario: Scenario, scenario_ref: str) -> str:
+    """The estimator to run: the option's, else the scenario's ``estimator.name``, which is
+    checked here so that an unknown one is blamed on the scenario file, not on the option."""
+    if estimator:
+        return estimator
+    name = scenario.estimator.name
+    try:
+        est_base.get(name)
+    except InputError as exc:
+        raise InputError(f"estimator.name: {exc.what}", str(scenario_ref)) from None
+    return name
+
+
+def _nothing_seen(meas) -> str | None:
+    """A warning when the sensor measured nothing in the whole run (the target out of the
+    field of view or behind the chaser, occluded throughout, or lost from the start), else
+    None; measurements without an ``observed`` mask (rendered images) are not checked."""
+    observed = getattr(meas, "observed", None)
+    if observed is None or np.any(np.asarray(observed)):
+        return None
+    return (
+        "the sensor measured nothing in the whole run: the target is out of the field of "
+        "view or behind the chaser, occluded throughout, or lost from the start (check "
+        "target.r0_L_m, chaser.attitude, occlusion)"
+    )
 
 
 def _front_end_stage(scenario: Scenario, est, meas, con: Console):
@@ -157,6 +187,38 @@ def _load_images(folder: Path, ds, scenario: Scenario):
     return meas, truth
 
 
+def _check_measured_values(ds, meas, where: str) -> None:
+    """The values of a measurements file that its structure does not check: the attitudes
+    are unit quaternions, ``observed`` is 0 or 1, and every observed measurement is finite
+    (an InputError naming the variable and the first bad epoch otherwise)."""
+    t = np.asarray(meas.t, dtype=float)
+    for name in ("q_CL", "q_LI"):
+        q = np.asarray(getattr(meas, name), dtype=float)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.abs(np.linalg.norm(q, axis=-1) - 1.0) < 1e-3)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"{name} at epoch {k} (t = {t[k]:g} s) is {q[k].tolist()}, not a unit quaternion",
+                where,
+            )
+    raw = np.asarray(ds["observed"].values)
+    if raw.dtype != bool and not np.isin(raw, (0, 1)).all():
+        bad_values = sorted({float(v) for v in np.unique(raw) if v not in (0, 1)})[:3]
+        raise InputError(f"observed holds {bad_values}: only 0 and 1 (or booleans)", where)
+    values, name = (meas.uv, "uv") if hasattr(meas, "uv") else (meas.points, "points")
+    seen = np.asarray(meas.observed, dtype=bool)
+    finite = np.all(np.isfinite(values), axis=-1)
+    bad = seen & ~finite.reshape(seen.shape)
+    if bad.any():
+        k = int(np.argwhere(bad)[0][0])
+        raise InputError(
+            f"{name} at epoch {k} (t = {t[k]:g} s) is not finite where observed is 1 (mark "
+            "it unobserved, or give the value)",
+            where,
+        )
+
+
 def _load_measurements(folder: Path, scenario: Scenario):
     """Read ``folder/measurements.nc`` (and ``truth.nc`` if present), checked against the
     scenario: the sensor kind, the rig and its calibration, the noise the estimators weight
@@ -211,6 +273,7 @@ def _load_measurements(folder: Path, scenario: Scenario):
                 + " (give the scenario of the rig that took the data)",
                 str(path),
             )
+    _check_measured_values(ds, meas, str(path))
     if len(meas.t) < 2:
         raise InputError("needs at least two epochs", str(path))
     if not np.all(np.diff(meas.t) > 0):
@@ -236,7 +299,7 @@ def run_estimate(
     any work (InputError)."""
     con = console or Console(stderr=True)
     scenario = load_scenario(scenario_ref)
-    estimator = estimator or scenario.estimator.name
+    estimator = _estimator_name(estimator, scenario, scenario_ref)
     scenario = _own_tuning(scenario, estimator, con)
     est = est_base.get_for(estimator, scenario)
     ss = run_seed(scenario.montecarlo.seed if seed is None else seed, 0)
@@ -251,6 +314,7 @@ def run_estimate(
                 f"not simulated yet, so {estimator} cannot run on it"
             )
     images = meas if isinstance(meas, StereoImageMeasurements) else None
+    nothing = _nothing_seen(meas)
     meas, frontend_stats = _front_end_stage(scenario, est, meas, con)
     if getattr(est, "compiled", False) and not kernels_compiled():
         con.print("compiling the numerical kernels (first run after installing: about 30 s, once)")
@@ -275,7 +339,7 @@ def run_estimate(
         summary["measurements"] = str(Path(measurements) / "measurements.nc")
     if frontend_stats is not None:
         summary["frontend"] = frontend_stats
-    notes = [str(w) for w in hist.info.get("warnings", []) or []]
+    notes = ([nothing] if nothing else []) + [str(w) for w in hist.info.get("warnings", []) or []]
     if notes:  # what the estimator said about its own run
         summary["estimator_warnings"] = notes
     if r is not None:
@@ -332,7 +396,7 @@ def run_montecarlo(
     scenario = scenario or load_scenario(scenario_ref)
     if seed is not None:
         scenario = scenario.with_updates(**{"montecarlo.seed": seed})
-    estimator = estimator or scenario.estimator.name
+    estimator = _estimator_name(estimator, scenario, scenario_ref or scenario.name)
     scenario = _own_tuning(scenario, estimator, console or Console(stderr=True))
     runs = runs or scenario.montecarlo.runs
     summary = runner.run_campaign(  # checks the estimator against the scenario first

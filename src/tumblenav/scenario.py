@@ -34,11 +34,28 @@ from tumblenav.errors import InputError
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
+# annotations that are plain numbers, for _Model's true/false check
+_NUMBERS = (float, int, float | None, int | None)
+
 
 class _Model(BaseModel):
-    """Strict base: unknown keys are errors, values are validated on assignment too."""
+    """Strict base: unknown keys are errors, values are validated on assignment too, numbers
+    must be finite (NaN and infinities are errors), and true/false is not a number."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        # YAML's true/false would pass as 1/0 where a number is meant (duration_s: true)
+        if isinstance(data, dict):
+            for key, v in data.items():
+                field = cls.model_fields.get(key) if isinstance(key, str) else None
+                if isinstance(v, bool) and field is not None and field.annotation in _NUMBERS:
+                    raise ValueError(f"{key}: expected a number, got {str(v).lower()}")
+        return data
 
 
 def _finite(v: npt.ArrayLike, what: str) -> None:
@@ -108,7 +125,7 @@ class ChaserConfig(_Model):
 class RandomFeatures(_Model):
     """Feature points drawn uniformly in a box of the target frame T (Hu 2024 Sec. 5)."""
 
-    count: int = Field(ge=3, description="number of features")
+    count: int = Field(ge=3, le=10_000, description="number of features (3 to 10 000)")
     low_m: float = -1.5
     high_m: float = 1.5
     seed: int | None = Field(
@@ -177,6 +194,13 @@ class TargetConfig(_Model):
         description="outward surface normals of the features (self-occlusion); default: "
         "radial from the mass centre",
     )
+
+    @field_validator("r0_L_m")
+    @classmethod
+    def _apart(cls, v: list[float]) -> list[float]:
+        if not np.linalg.norm(v) > 0:
+            raise ValueError("the target starts at the chaser (0, 0, 0): give its position in L")
+        return v
 
     @field_validator("inertia_kg_m2")
     @classmethod
@@ -385,7 +409,9 @@ class DepthSensorConfig(_Model):
 
     kind: Literal["depth"] = "depth"
     fov_deg: float = Field(40.0, gt=0, lt=180)
-    points: int = Field(1800, gt=0, description="points per cloud (Yu 2019 Sec. 4: 1800)")
+    points: int = Field(
+        1800, gt=0, le=1_000_000, description="points per cloud (Yu 2019 Sec. 4: 1800; at most 1e6)"
+    )
     range_noise_m: float = Field(0.01, ge=0)
     outlier_fraction: float = Field(0.0, ge=0, le=1)
     max_range_m: float = Field(100.0, gt=0)
@@ -491,6 +517,13 @@ class Scenario(_Model):
             raise ValueError("duration_s * rate_hz gives fewer than 2 samples")
         if n > 5e6:
             raise ValueError(f"duration_s * rate_hz = {n:.3g} samples is too many (max 5e6)")
+        turn = float(np.linalg.norm(self.target.omega0_T_rad_s)) / self.rate_hz
+        if turn > np.pi:
+            raise ValueError(
+                f"target.omega0_T_rad_s: the target turns {turn:.3g} rad between samples, more "
+                f"than half a turn: no estimator can tell it from a slower spin; raise rate_hz "
+                f"or lower the rate"
+            )
         if self.steady_state_window_s is not None:
             a, b = self.steady_state_window_s
             if not 0 <= a < b <= self.duration_s:
@@ -583,8 +616,9 @@ def validate_scenario(data: Any, source: str = "<scenario>") -> Scenario:
         return Scenario.model_validate(data)
     except ValidationError as exc:
         errors = exc.errors()
-        # Prefer the most specific error (longest key path) of a union's alternatives.
-        err = max(errors, key=lambda e: len(e["loc"]))
+        # Prefer the most specific error (longest key path) of a union's alternatives, and of
+        # those the alternative whose type matched (its error is about the value, not the type)
+        err = max(errors, key=lambda e: (len(e["loc"]), not str(e["type"]).endswith("_type")))
         if any(e["type"] == "extra_forbidden" for e in errors):
             err = next(e for e in errors if e["type"] == "extra_forbidden")
         loc = _format_loc(err["loc"])
@@ -604,6 +638,8 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     source = str(name_or_path)
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or p.exists():
+        if p.is_dir():
+            raise InputError("a folder, not a scenario file (give the path of a YAML file)", source)
         if not p.is_file():
             raise InputError("no such scenario file", source)
         try:

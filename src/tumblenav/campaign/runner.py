@@ -276,7 +276,7 @@ def run_campaign(
         raise InputError("--runs must be at least 1")
     base_seed = scenario.montecarlo.seed if base_seed is None else base_seed
     store = CampaignStore(Path(out_dir))
-    store.open(
+    damaged = store.open(
         {
             "scenario": scenario.name,
             "scenario_hash": scenario_hash(scenario),
@@ -292,6 +292,13 @@ def run_campaign(
     todo = sorted(set(range(runs)) - store.done())
     workers = max(1, workers or os.cpu_count() or 1)
     con = console or Console(stderr=True)
+    if damaged:
+        con.print(
+            f"[bold yellow]warning:[/] {len(damaged)} stored run(s) in {store.runs_dir} could "
+            f"not be read ({', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}): set "
+            "aside as *.damaged and computed again",
+            highlight=False,
+        )
     if runs - len(todo) > 0:
         con.print(
             f"resuming {store.root}: {runs - len(todo)} of {runs} runs already stored, "

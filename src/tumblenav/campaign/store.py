@@ -63,9 +63,11 @@ class CampaignStore:
     def failed_path(self, k: int) -> Path:
         return self.runs_dir / f"run_{k:06d}.failed.json"
 
-    def open(self, spec: dict[str, Any]) -> None:
+    def open(self, spec: dict[str, Any]) -> list[str]:
         """Create the folder, or check that an existing one holds the same campaign, computed
-        by the same code (``code_fingerprint``, added to ``spec``) if it holds runs."""
+        by the same code (``code_fingerprint``, added to ``spec``) if it holds runs. Returns
+        the stored runs that could not be read, set aside to be computed again
+        (:meth:`set_aside_damaged`)."""
         spec = {**spec, "code_fingerprint": code_fingerprint()}
         self.runs_dir.mkdir(parents=True, exist_ok=True)
         spec_path = self.root / "campaign.json"
@@ -89,7 +91,24 @@ class CampaignStore:
                     str(self.root),
                 )
         self.remove_partial()
+        damaged = self.set_aside_damaged()
         io.write_json(spec, spec_path)
+        return damaged
+
+    def set_aside_damaged(self) -> list[str]:
+        """Rename every stored run that cannot be read whole (a disk fault, a file edited or
+        truncated by hand: writes themselves are atomic) to ``run_NNNNNN.npz.damaged`` so that
+        it is computed again; returns their names. Call only while no worker writes here."""
+        damaged = []
+        for path in sorted(self.runs_dir.glob("run_*.npz")):
+            try:
+                with np.load(path) as z:
+                    for key in z.files:
+                        z[key]  # reads and checks every member (zip CRC)
+            except Exception:  # noqa: BLE001 - any unreadable file is set aside, named
+                path.replace(path.with_name(path.name + ".damaged"))
+                damaged.append(path.name)
+        return damaged
 
     def remove_partial(self) -> None:
         """Delete temporary files of writes that a killed worker never finished (every write

@@ -91,6 +91,8 @@ def load_yaml(path: Path) -> dict[str, Any]:
     """A YAML mapping, plain or OpenCV FileStorage (``%YAML:1.0``, ``!!opencv-matrix``);
     InputError naming the file if missing or malformed."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError("a folder, not a calibration file", str(path))
     if not path.is_file():
         raise InputError("calibration file not found", str(path))
     try:

@@ -32,6 +32,8 @@ _PLY_TYPES = {
 def read_cloud(path: Path) -> Array:
     """(m, 3) points of a PLY or PCD file (by suffix); InputError naming the file."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError("a folder, not a point cloud file", str(path))
     if not path.is_file():
         raise InputError("point cloud file not found", str(path))
     suffix = path.suffix.lower()

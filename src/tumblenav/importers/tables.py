@@ -17,6 +17,8 @@ def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
     """Columns of a CSV or Parquet file by name: float arrays (empty cells NaN), the columns
     named in ``text`` as strings (empty cells ''). InputError naming the file and the row."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError("a folder, not a file", str(path))
     if not path.is_file():
         raise InputError("file not found", str(path))
     if path.suffix.lower() in (".parquet", ".pq"):

@@ -76,6 +76,14 @@ def read_tracks(path: Path) -> TrackTable:
             str(path),
         )
     px = np.stack([cols[c] for c in COLUMNS[2:]], axis=1).reshape(-1, 2, 2)  # row, cam, uv
+    inf = np.isinf(px)
+    if inf.any():
+        i, cam, c = (int(x) for x in np.argwhere(inf)[0])
+        raise InputError(
+            f"{row_name(path, i)}: {('u', 'v')[c]}_{('left', 'right')[cam]}_px is infinite "
+            "(give a pixel coordinate, or leave both empty where the camera did not see it)",
+            str(path),
+        )
     fin = np.isfinite(px)
     half = fin[:, :, 0] != fin[:, :, 1]
     if half.any():
@@ -128,6 +136,18 @@ def tracks_measurements(
             f"one_camera_sightings: {one_camera!r} is not one of {', '.join(ONE_CAMERA)}", where
         )
     uv = table.uv
+    W, H = cal.size
+    with np.errstate(invalid="ignore"):
+        outside = (uv[..., 0] < -1) | (uv[..., 0] > W) | (uv[..., 1] < -1) | (uv[..., 1] > H)
+    if outside.any():
+        k, cam, j = (int(x) for x in np.argwhere(outside)[0])
+        u, v = (float(c) for c in uv[k, cam, j])
+        raise InputError(
+            f"feature {table.labels[j]} at t_s {float(table.t[k])!r}: the "
+            f"{('left', 'right')[cam]} pixel ({u:g}, {v:g}) lies outside the {W} x {H} image "
+            "(image_size_px in the calibration)",
+            str(path),
+        )
     warnings = []
     if table.one_camera:
         obs = np.isfinite(uv[..., 0])

@@ -49,6 +49,30 @@ from tumblenav.measurements import STEREO_TRACKS
 __all__ = ["HuEKF", "histories", "parse_tuning", "run_filter"]
 
 
+def _check_size(measurements: Any, name: str) -> None:
+    """Refuse a run whose covariance history cannot fit in this machine's memory: the state
+    carries 3 coordinates per feature tracked and a run keeps one covariance per epoch."""
+    import os
+
+    uv = getattr(measurements, "uv", None)
+    if uv is None:
+        return
+    n_features = int(np.shape(uv)[2])
+    dim = 13 + 3 * n_features
+    epochs = len(measurements.t)
+    need = epochs * dim * dim * 8.0
+    try:
+        have = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return
+    if need > have:
+        raise InputError(
+            f"{name} on {n_features} features keeps a {dim} x {dim} covariance per epoch: "
+            f"{epochs} epochs need ~{need / 2**30:.0f} GiB, this machine has "
+            f"{have / 2**30:.0f} GiB; use fewer features or a shorter run"
+        )
+
+
 class HuEKF:
     """Shared implementation of ekf-dpacf and ekf-baseline."""
 
@@ -72,11 +96,19 @@ class HuEKF:
                 f"{self.name} needs a stereo sensor; scenario {scenario.name} has "
                 f"a {scenario.sensor.kind} sensor"
             )
+        noise = scenario.sensor.noise
+        if not (noise.angular_rad or noise.pixels):
+            raise InputError(
+                f"sensor.noise is 0: {self.name} weights the triangulated features by the "
+                "sensor's noise and cannot weigh exact measurements; give the sensor's noise "
+                "(it may be tiny, e.g. angular_rad: 1.0e-7)"
+            )
         parse_tuning(scenario.estimator.tuning, self.use_dpacf)
 
     def run(self, scenario: Any, measurements: Any, rng: np.random.Generator) -> EstimateHistory:
         scenario = context_from_scenario(scenario)  # never the target's truth
         self.check(scenario)
+        _check_size(measurements, self.name)
         return histories(run_filter(scenario, [measurements], self.use_dpacf), scenario)[0]
 
     def run_batch(

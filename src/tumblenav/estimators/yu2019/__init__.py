@@ -66,6 +66,12 @@ class DepthEKF:
                 f"ekf-depth needs a depth sensor; scenario {scenario.name} has a "
                 f"{scenario.sensor.kind} sensor"
             )
+        if not scenario.sensor.range_noise_m > 0:
+            raise InputError(
+                "sensor.range_noise_m is 0: ekf-depth weights each rectangle fix by the "
+                "sensor's range noise and cannot weigh exact measurements; give the sensor's "
+                "noise (it may be tiny, e.g. 0.001)"
+            )
         base_parse_tuning(scenario.estimator.tuning, DepthTuning)
 
     def run(self, scenario: Any, meas: Any, rng: np.random.Generator) -> EstimateHistory:
