@@ -180,3 +180,13 @@ def test_a_run_that_measures_nothing_says_so(tmp_path, capsys):
     assert "the sensor measured nothing in the whole run" in (out + err).replace("\n", " ")
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert any("measured nothing" in w for w in summary["estimator_warnings"])
+
+
+def test_the_report_of_an_unfinished_campaign_says_how_to_finish_it(tmp_path, capsys):
+    sc = short(tmp_path)
+    camp = tmp_path / "camp"
+    code, _, err = run(["montecarlo", sc, "--runs", 2, "--workers", 1, "-o", camp], capsys)
+    assert code == 0, err
+    (camp / "summary.json").unlink()  # as a campaign interrupted before its summary
+    code, _, err = run(["report", camp], capsys)
+    one_line_error(code, err, "summary is not written yet", "montecarlo command again")

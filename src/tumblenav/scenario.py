@@ -40,7 +40,8 @@ _NUMBERS = (float, int, float | None, int | None)
 
 class _Model(BaseModel):
     """Strict base: unknown keys are errors, values are validated on assignment too, numbers
-    must be finite (NaN and infinities are errors), and true/false is not a number."""
+    must be finite (NaN and infinities are errors), and true/false is not a number (a text
+    that reads as a number is one: YAML 1.1 reads 6.8e6 as text)."""
 
     model_config = ConfigDict(
         extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False
@@ -53,7 +54,9 @@ class _Model(BaseModel):
         if isinstance(data, dict):
             for key, v in data.items():
                 field = cls.model_fields.get(key) if isinstance(key, str) else None
-                if isinstance(v, bool) and field is not None and field.annotation in _NUMBERS:
+                if field is None or field.annotation not in _NUMBERS:
+                    continue
+                if isinstance(v, bool):
                     raise ValueError(f"{key}: expected a number, got {str(v).lower()}")
         return data
 

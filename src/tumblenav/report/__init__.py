@@ -199,6 +199,12 @@ def build(folder: Path) -> str:
     if not folder.is_dir():
         raise InputError("not a folder", str(folder))
     summary: dict[str, Any] = io.read_json(path) if path.is_file() else {}
+    if not summary and (folder / "campaign.json").is_file():
+        raise InputError(
+            "a Monte Carlo campaign whose summary is not written yet (interrupted?): run its "
+            "montecarlo command again to finish it, then the report",
+            str(folder),
+        )
     if not summary and not (folder / "truth.nc").is_file():
         raise InputError(
             "holds no summary.json or truth.nc: not a tumblenav output folder", str(folder)
