@@ -89,6 +89,13 @@ def test_one_command_does_not_replace_another_commands_results(tmp_path, capsys)
             ["high_m must be greater than low_m"],
         ),
         ({"estimator.name": "nosuch"}, ["estimator.name", "unknown estimator 'nosuch'"]),
+        (
+            {
+                "chaser.attitude": "target-pointing",
+                "chaser.camera_mount_R_LC": [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]],
+            },
+            ["camera_mount_R_LC", "applies to attitude 'lvlh' only"],
+        ),
         ({"sensor.noise": {"angular_rad": 0.0}}, ["sensor.noise is 0", "ekf-dpacf"]),
     ],
 )

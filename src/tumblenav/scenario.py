@@ -118,6 +118,16 @@ class ChaserConfig(_Model):
                 )
         return v
 
+    @model_validator(mode="after")
+    def _mount_with_lvlh(self) -> ChaserConfig:
+        if self.camera_mount_R_LC is not None and self.attitude != "lvlh":
+            raise ValueError(
+                "camera_mount_R_LC: the rig's mount in L applies to attitude 'lvlh' only; with "
+                f"'{self.attitude}' the rig points at the target (remove the key, or set "
+                "attitude: lvlh)"
+            )
+        return self
+
     @property
     def R_LC_fixed(self) -> np.ndarray:
         if self.camera_mount_R_LC is not None:
