@@ -73,6 +73,12 @@ def test_one_command_does_not_replace_another_commands_results(tmp_path, capsys)
     assert code == 0, err
     code, _, err = run(["montecarlo", sc, "--runs", 2, "--workers", 1, "-o", single], capsys)
     one_line_error(code, err, "one estimate", "choose another folder")
+    code, _, err = run(
+        ["compare", sc, "-e", "ekf-dpacf,ekf-baseline", "--runs", 2, "--workers", 1, "-o", camp],
+        capsys,
+    )
+    one_line_error(code, err, "Monte Carlo campaign", "choose another folder")
+    assert (camp / "summary.json").read_bytes() == before
 
 
 @pytest.mark.parametrize(

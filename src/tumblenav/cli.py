@@ -100,6 +100,43 @@ def _record(output: Path, report: bool = False) -> None:
         out.print(f"report: {write_report(Path(output))}")
 
 
+# the results a command may write over (its own, and simulate's under estimate: `demo`)
+_WRITES_INTO = {
+    "simulate": ("a simulation", "one estimate"),
+    "estimate": ("a simulation", "one estimate"),
+    "demo": ("a simulation", "one estimate"),
+    "montecarlo": ("a Monte Carlo campaign",),
+    "compare": ("a comparison",),
+    "reproduce": ("a paper's reproduction",),
+}
+
+
+def _folder_kind(p: Path) -> str | None:
+    """Whose results folder ``p`` holds (None: none, or not a folder)."""
+    if not p.is_dir():
+        return None
+    if (p / "campaign.json").is_file():
+        return "a Monte Carlo campaign"
+    if (p / "estimates.nc").is_file():
+        return "one estimate"
+    summary = p / "summary.json"
+    if summary.is_file():
+        import json
+
+        try:
+            keys = json.loads(summary.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            keys = {}
+        keys = keys if isinstance(keys, dict) else {}
+        if "paper" in keys:
+            return "a paper's reproduction"
+        if "same_measurements" in keys or any(p.glob("*/campaign.json")):
+            return "a comparison"
+    if (p / "truth.nc").is_file():
+        return "a simulation"
+    return None
+
+
 def _check_output(output: Path, command: str) -> None:
     """An output folder that cannot be used is bad input, found before any work starts (exit
     2): an empty path, a file (or a path through one), a folder that cannot be written, or a
@@ -120,18 +157,11 @@ def _check_output(output: Path, command: str) -> None:
             if not q.is_dir():
                 raise InputError(f"{q} is a file, not a folder", f"{where} {p}")
             break
-    single = command in ("simulate", "estimate", "demo")
-    campaigns = [p / "campaign.json", *p.glob("*/campaign.json")] if p.is_dir() else []
-    if single and any(c.is_file() for c in campaigns):
+    held = _folder_kind(p)
+    if held is not None and held not in _WRITES_INTO[command]:
         raise InputError(
-            f"it holds a Monte Carlo campaign (campaign.json); {command} would replace its "
-            "summary: choose another folder",
-            f"{where} {p}",
-        )
-    if not single and (p / "estimates.nc").is_file():
-        raise InputError(
-            f"it holds the results of one estimate (estimates.nc); {command} would replace its "
-            "summary: choose another folder",
+            f"it holds the results of {held}; {command} would replace them in part (its "
+            "summary.json): choose another folder",
             f"{where} {p}",
         )
     # nothing is created before the work starts (a refused command leaves no folder): the
