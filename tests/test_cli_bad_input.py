@@ -203,3 +203,65 @@ def test_the_report_of_an_unfinished_campaign_says_how_to_finish_it(tmp_path, ca
     (camp / "summary.json").unlink()  # as a campaign interrupted before its summary
     code, _, err = run(["report", camp], capsys)
     one_line_error(code, err, "summary is not written yet", "montecarlo command again")
+
+
+def test_two_commands_on_one_campaign_folder_at_once(tmp_path, capsys):
+    from tumblenav.campaign.runner import _exclusive
+
+    sc = short(tmp_path)
+    camp = tmp_path / "camp"
+    with _exclusive(camp):  # as another command writing there now
+        code, _, err = run(["montecarlo", sc, "--runs", 2, "--workers", 1, "-o", camp], capsys)
+        one_line_error(code, err, "another tumblenav command is writing this campaign now")
+        assert not (camp / "campaign.json").exists()
+    code, _, err = run(["montecarlo", sc, "--runs", 2, "--workers", 1, "-o", camp], capsys)
+    assert code == 0, err
+
+
+def test_malformed_point_clouds_and_summaries(tmp_path, capsys):
+    from tumblenav.errors import InputError
+    from tumblenav.importers.clouds import read_cloud
+
+    cases = {
+        "neg.ply": b"ply\nformat ascii 1.0\nelement vertex -3\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n",
+        "extra.ply": b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n0 0 5\n0 1 5\n",
+        "word.pcd": b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA ascii\n0.1 abc 5\n",
+        "view.pcd": b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nVIEWPOINT 0 0 0 foo\nPOINTS 1\n"
+        b"DATA ascii\n0 0 5\n",
+        "negbin.pcd": b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH -3\nPOINTS -3\nDATA binary\n"
+        + bytes(72),
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError) as ei:
+            read_cloud(tmp_path / name)
+        assert name in str(ei.value)
+    folder = tmp_path / "s"
+    folder.mkdir()
+    for text, why in (
+        ("[1, 2, 3]", "JSON list"),
+        ('{"window_s": 5}', "window_s: 5 where tumblenav writes a list"),
+    ):
+        (folder / "summary.json").write_text(text)
+        code, _, err = run(["report", folder], capsys)
+        one_line_error(code, err, why)
+
+
+def test_a_comparison_is_not_shrunk_by_a_later_one(tmp_path, capsys):
+    sc = short(tmp_path)
+    out = tmp_path / "cmp"
+    args = ["--runs", 1, "--workers", 1, "-o", out, "--no-plots"]
+    code, _, err = run(["compare", sc, "-e", "ekf-dpacf,ekf-baseline", *args], capsys)
+    assert code == 0, err
+    before = (out / "summary.json").read_bytes()
+    code, _, err = run(["compare", sc, "-e", "ekf-dpacf,ekf-pose", *args], capsys)
+    one_line_error(code, err, "would drop ekf-baseline", "-e ekf-dpacf,ekf-baseline,ekf-pose")
+    assert (out / "summary.json").read_bytes() == before
+
+
+def test_scenarios_show_of_a_file_says_what_show_is_for(tmp_path, capsys):
+    sc = short(tmp_path)
+    code, _, err = run(["scenarios", "show", sc], capsys)
+    one_line_error(code, err, "prints a built-in scenario", "this is a file")

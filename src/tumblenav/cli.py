@@ -248,7 +248,14 @@ def scenarios_list() -> None:
 @scenarios_app.command("show", cls=StrictCommand)
 def scenarios_show(name: Annotated[str, typer.Argument(help="built-in scenario name")]) -> None:
     """Print a built-in scenario as YAML (save it, edit it, pass its path to other commands)."""
-    from tumblenav.scenario import builtin_text
+    from tumblenav.scenario import builtin_names, builtin_text
+
+    if name not in builtin_names() and Path(name).is_file():
+        raise InputError(
+            "scenarios show prints a built-in scenario (" + ", ".join(builtin_names()) + "); "
+            "this is a file: open it, or pass its path to simulate, estimate or montecarlo",
+            name,
+        )
 
     sys.stdout.write(builtin_text(name))
 

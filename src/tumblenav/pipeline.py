@@ -75,6 +75,29 @@ def _estimator_name(estimator: str | None, scenario: Scenario, scenario_ref: str
     return name
 
 
+def _keeps_earlier_comparison(output: Path, names: list[str]) -> None:
+    """A comparison resumed in ``output`` must name every estimator the folder's comparison
+    already holds: its summary would otherwise drop them (InputError)."""
+    path = Path(output) / "summary.json"
+    if not path.is_file():
+        return
+    try:
+        earlier = io.read_json(path)
+    except (OSError, ValueError, InputError):
+        return
+    cases = earlier.get("cases") if isinstance(earlier, dict) else None
+    held = [c.get("estimator") for c in cases or [] if isinstance(c, dict)]
+    dropped = [n for n in held if n and n not in names]
+    if dropped:
+        raise InputError(
+            f"holds a comparison of {', '.join(n for n in held if n)}; this one would drop "
+            f"{', '.join(dropped)} from its summary: name them too (-e "
+            f"{','.join(dict.fromkeys([*(n for n in held if n), *names]))}) or choose another "
+            "folder",
+            str(output),
+        )
+
+
 def _nothing_seen(meas) -> str | None:
     """A warning when the sensor measured nothing in the whole run (the target out of the
     field of view or behind the chaser, occluded throughout, or lost from the start), else
@@ -644,6 +667,7 @@ def run_compare(
         )
     runs = runs or scenario.montecarlo.runs
     output = Path(output)
+    _keeps_earlier_comparison(output, names)
     con = console or Console(stderr=True)
     cases = []
     for name in names:

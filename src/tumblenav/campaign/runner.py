@@ -20,6 +20,7 @@ already stored are never recomputed into the store.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import secrets
@@ -253,6 +254,31 @@ def scenario_hash(scenario: Scenario) -> str:
     return hashlib.sha256(scenario_to_yaml(scenario).encode()).hexdigest()[:16]
 
 
+@contextlib.contextmanager
+def _exclusive(folder: Path):
+    """Hold ``folder/.lock`` exclusively while a campaign writes there: a second command on
+    the same folder at the same time is refused (InputError) instead of mixing its runs, its
+    campaign.json and its summary with the first's (an advisory lock, released when this
+    process ends, however it ends)."""
+    import fcntl
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".lock", "a+b") as fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(
+                "another tumblenav command is writing this campaign now: wait for it to "
+                "finish (then run this one again to resume or extend it), or choose another "
+                "folder",
+                str(folder),
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
 def run_campaign(
     scenario: Scenario,
     estimator_name: str,
@@ -269,11 +295,31 @@ def run_campaign(
     The estimator is checked against the scenario before anything runs (InputError). On an
     interrupt (:class:`Interrupted` or ``KeyboardInterrupt``) the workers are stopped, the
     finished runs stay stored, and :class:`Interrupted` carries in ``kept`` what was kept and
-    how to resume.
+    how to resume. One command at a time writes a campaign folder (:func:`_exclusive`).
     """
     est = est_base.get_for(estimator_name, scenario)
     if runs < 1:
         raise InputError("--runs must be at least 1")
+    with _exclusive(Path(out_dir)):
+        return _run_campaign(
+            scenario, est, estimator_name, runs, out_dir, workers, scheduler, console,
+            chunk_size, base_seed,
+        )  # fmt: skip
+
+
+def _run_campaign(
+    scenario: Scenario,
+    est: Any,
+    estimator_name: str,
+    runs: int,
+    out_dir: Path,
+    workers: int | None,
+    scheduler: str | None,
+    console: Console | None,
+    chunk_size: int | None,
+    base_seed: int | None,
+) -> dict[str, Any]:
+    """:func:`run_campaign`'s work, under its lock."""
     base_seed = scenario.montecarlo.seed if base_seed is None else base_seed
     store = CampaignStore(Path(out_dir))
     damaged = store.open(
@@ -479,7 +525,7 @@ def _execute_dask(
         ) from None
     try:
         client = Client(address, timeout="5s")
-    except OSError as exc:
+    except (OSError, ValueError, TypeError) as exc:  # unreachable, or not an address at all
         raise InputError(f"cannot reach the Dask scheduler ({exc})", address) from None
     with client:
         _check_workers(client)

@@ -174,7 +174,10 @@ def _image_size(d: dict, where: str) -> tuple[int, int]:
     for cam in ("", "_left", "_right"):
         for key in (f"image_size{cam}_px", f"imageSize{cam}"):
             if key in d:
-                v = np.asarray(d[key], dtype=float).ravel()
+                try:
+                    v = np.asarray(d[key], dtype=float).ravel()
+                except (TypeError, ValueError):
+                    raise InputError(f"{key}: expected [width, height] in px", where) from None
                 if v.size != 2 or not np.all(v > 0) or not np.all(v == np.round(v)):
                     raise InputError(f"{key}: expected [width, height] in px", where)
                 sizes[key] = (int(v[0]), int(v[1]))

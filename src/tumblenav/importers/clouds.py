@@ -37,12 +37,14 @@ def read_cloud(path: Path) -> Array:
     if not path.is_file():
         raise InputError("point cloud file not found", str(path))
     suffix = path.suffix.lower()
-    if suffix == ".ply":
-        pts = read_ply(path)
-    elif suffix == ".pcd":
-        pts = read_pcd(path)
-    else:
+    if suffix not in (".ply", ".pcd"):
         raise InputError("not a .ply or .pcd file", str(path))
+    try:
+        pts = read_ply(path) if suffix == ".ply" else read_pcd(path)
+    except (ValueError, IndexError, TypeError) as exc:  # InputError is handled by the caller
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"malformed {suffix[1:].upper()} file ({exc})", str(path)) from None
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) == 0:
         raise InputError(
@@ -97,6 +99,8 @@ def read_ply(path: Path) -> Array:
     if not elements or elements[0][0] != "vertex":
         raise InputError("the first element must be 'vertex'", str(path))
     _, count, props = elements[0]
+    if count < 0:
+        raise InputError(f"element vertex {count}: a negative count", str(path))
     names = [p[1] for p in props]
     if not {"x", "y", "z"} <= set(names):
         raise InputError("the vertex element has no x, y, z properties", str(path))
@@ -105,12 +109,19 @@ def read_ply(path: Path) -> Array:
     idx = [names.index(c) for c in "xyz"]
     if fmt == "ascii":
         rows = data[offset:].decode("ascii", "replace").splitlines()
-        rows = [r for r in rows if r.strip()][:count]
+        rows = [r for r in rows if r.strip()]
+        if len(rows) != count and len(elements) == 1:
+            raise InputError(f"{len(rows)} vertex lines, the header says {count}", str(path))
         if len(rows) < count:
             raise InputError(f"{len(rows)} vertex lines, the header says {count}", str(path))
+        rows = rows[:count]
         out = np.empty((count, 3))
         for i, r in enumerate(rows):
             parts = r.split()
+            if len(parts) != len(names):
+                raise InputError(
+                    f"vertex {i}: {len(parts)} numbers, expected {len(names)}", str(path)
+                )
             try:
                 out[i] = [float(parts[j]) for j in idx]
             except (ValueError, IndexError):
@@ -155,19 +166,32 @@ def read_pcd(path: Path) -> Array:
         raise InputError(
             "malformed PCD header (FIELDS, SIZE, TYPE, POINTS, DATA)", str(path)
         ) from None
+    if n < 0:
+        raise InputError(f"POINTS {n}: a negative count", str(path))
+    if "POINTS" in head and "WIDTH" in head:
+        try:
+            wh = int(head["WIDTH"][0]) * int(head.get("HEIGHT", ["1"])[0])
+        except (IndexError, ValueError):
+            raise InputError("malformed WIDTH or HEIGHT", str(path)) from None
+        if wh != n:
+            raise InputError(f"WIDTH x HEIGHT = {wh} but POINTS = {n}", str(path))
     if not (len(fields) == len(sizes) == len(types) == len(counts)):
         raise InputError("FIELDS, SIZE, TYPE and COUNT have different lengths", str(path))
     if not {"x", "y", "z"} <= set(fields):
         raise InputError("no x, y, z fields", str(path))
     vp = head.get("VIEWPOINT")
-    if vp is not None and [float(v) for v in vp] != [0, 0, 0, 1, 0, 0, 0]:
+    try:
+        vp_values = [float(v) for v in vp] if vp is not None else None
+    except ValueError:
+        raise InputError(f"VIEWPOINT {' '.join(vp or [])!r}: not numbers", str(path)) from None
+    if vp_values is not None and vp_values != [0, 0, 0, 1, 0, 0, 0]:
         raise InputError(
             "VIEWPOINT is not 0 0 0 1 0 0 0: give the points in the sensor frame", str(path)
         )
     if mode == "ascii":
         width = sum(counts)
         rows = [r for r in data[offset:].decode("ascii", "replace").splitlines() if r.strip()]
-        if len(rows) < n:
+        if len(rows) != n:
             raise InputError(f"{len(rows)} point lines, POINTS says {n}", str(path))
         col, cols = 0, {}
         for f, c in zip(fields, counts, strict=True):
@@ -178,7 +202,10 @@ def read_pcd(path: Path) -> Array:
             parts = r.split()
             if len(parts) != width:
                 raise InputError(f"point {i}: {len(parts)} values, expected {width}", str(path))
-            out[i] = [float(parts[cols[c]]) for c in "xyz"]  # 'nan' parses to NaN
+            try:
+                out[i] = [float(parts[cols[c]]) for c in "xyz"]  # 'nan' parses to NaN
+            except ValueError:
+                raise InputError(f"point {i}: not numbers ({r.strip()!r})", str(path)) from None
         return out
     if mode != "binary":
         raise InputError(

@@ -199,6 +199,7 @@ def build(folder: Path) -> str:
     if not folder.is_dir():
         raise InputError("not a folder", str(folder))
     summary: dict[str, Any] = io.read_json(path) if path.is_file() else {}
+    _check_summary(summary, path)
     if not summary and (folder / "campaign.json").is_file():
         raise InputError(
             "a Monte Carlo campaign whose summary is not written yet (interrupted?): run its "
@@ -249,6 +250,43 @@ def build(folder: Path) -> str:
         + "\n".join(p for p in parts if p)
         + "</body></html>\n"
     )
+
+
+# summary.json keys the report reads, and the types tumblenav writes them with
+_SUMMARY_TYPES: dict[str, tuple[type, ...]] = {
+    "rmse": (dict,),
+    "median": (dict,),
+    "runs": (int,),
+    "window_s": (list,),
+    "cases": (list,),
+    "warnings": (list,),
+    "estimator_warnings": (list,),
+    "scenario": (str,),
+    "estimator": (str,),
+    "paper": (str,),
+}
+
+
+def _check_summary(summary: Any, path: Path) -> None:
+    """An InputError if ``summary.json`` is not laid out as tumblenav writes it (edited by
+    hand, or another program's): a mapping, the keys the report reads of their types, and
+    each case of a comparison or reproduction a mapping as well."""
+    if not isinstance(summary, dict):
+        raise InputError(
+            f"is a JSON {type(summary).__name__}, not tumblenav's summary (a mapping)", str(path)
+        )
+    for key, types in _SUMMARY_TYPES.items():
+        if key in summary and summary[key] is not None and not isinstance(summary[key], types):
+            raise InputError(
+                f"{key}: {summary[key]!r} where tumblenav writes a "
+                f"{' or '.join(t.__name__ for t in types)} (was the file edited?)",
+                str(path),
+            )
+    window = summary.get("window_s")
+    if window is not None and len(window) != 2:
+        raise InputError("window_s is not [start, end]", str(path))
+    for case in summary.get("cases") or []:
+        _check_summary(case, path)
 
 
 def write_report(folder: Path, name: str = "report.html") -> Path:
