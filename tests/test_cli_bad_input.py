@@ -265,3 +265,21 @@ def test_scenarios_show_of_a_file_says_what_show_is_for(tmp_path, capsys):
     sc = short(tmp_path)
     code, _, err = run(["scenarios", "show", sc], capsys)
     one_line_error(code, err, "prints a built-in scenario", "this is a file")
+
+
+def test_import_tables_name_missing_columns_and_accept_extras_and_a_bom(tmp_path):
+    from tumblenav.errors import InputError
+    from tumblenav.importers.clouds import read_index
+    from tumblenav.importers.tracks import read_tracks
+
+    index = tmp_path / "clouds.csv"
+    index.write_text("t_s,path\n0.0,000000.ply\n1.0,000001.ply\n")
+    with pytest.raises(InputError) as ei:
+        read_index(index, ("file",))
+    assert "missing column(s) file" in str(ei.value) and "the header has t_s, path" in str(ei.value)
+    tracks = tmp_path / "tracks.csv"
+    rows = "0.0,1,10.0,10.0,5.0,10.0,a note\n0.2,1,11.0,10.0,6.0,10.0,\n"
+    head = "t_s,feature_id,u_left_px,v_left_px,u_right_px,v_right_px,comment\n"
+    tracks.write_bytes(b"\xef\xbb\xbf" + (head + rows).encode())  # a BOM, an extra column
+    table = read_tracks(tracks)
+    assert table.labels == ["1"] and np.allclose(table.uv[1, 0, 0], [11.0, 10.0])

@@ -267,14 +267,10 @@ def write_pcd(path: Path, points: Array, binary: bool = False) -> Path:
 def read_index(path: Path, columns: tuple[str, ...]) -> tuple[Array, dict[str, NDArray]]:
     """An index table (``t_s`` plus file columns): times strictly increasing (InputError
     naming the row of an unsorted or duplicate timestamp)."""
-    from tumblenav.importers.tables import read_table, row_name
+    from tumblenav.importers.tables import missing_columns, read_table, row_name
 
-    cols = read_table(path, text=columns)
-    missing = [c for c in ("t_s", *columns) if c not in cols]
-    if missing:
-        raise InputError(
-            f"missing column(s) {', '.join(missing)} (need t_s, {', '.join(columns)})", str(path)
-        )
+    cols = read_table(path, text=columns, numeric=("t_s",))
+    missing_columns(cols, ("t_s", *columns), path)
     t = cols["t_s"]
     if len(t) < 2:
         raise InputError(f"{len(t)} row(s): needs at least two epochs", str(path))

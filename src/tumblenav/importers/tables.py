@@ -13,9 +13,13 @@ from tumblenav.errors import InputError
 __all__ = ["read_table", "row_name", "write_table"]
 
 
-def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
+def read_table(
+    path: Path, text: tuple[str, ...] = (), numeric: tuple[str, ...] | None = None
+) -> dict[str, NDArray]:
     """Columns of a CSV or Parquet file by name: float arrays (empty cells NaN), the columns
-    named in ``text`` as strings (empty cells ''). InputError naming the file and the row."""
+    named in ``text`` as strings (empty cells ''). With ``numeric``, only those columns are
+    read as numbers and any other column a CSV has is kept as strings (a column the caller
+    does not use is no error). InputError naming the file and the row."""
     path = Path(path)
     if path.is_dir():
         raise InputError("a folder, not a file", str(path))
@@ -26,7 +30,7 @@ def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
     import csv
 
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # a BOM is no header
             lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
         rows = list(csv.reader(lines, skipinitialspace=True))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
@@ -43,8 +47,20 @@ def read_table(path: Path, text: tuple[str, ...] = ()) -> dict[str, NDArray]:
     out: dict[str, NDArray] = {}
     for c, key in enumerate(header):
         cells = np.array([r[c].strip() for r in body], dtype=object)
-        out[key] = cells if key in text else _floats(cells, key, path, lambda i: i + 2)
+        as_text = key in text or (numeric is not None and key not in numeric)
+        out[key] = cells if as_text else _floats(cells, key, path, lambda i: i + 2)
     return out
+
+
+def missing_columns(cols: dict, need: tuple[str, ...], path: Path) -> None:
+    """InputError naming the columns of ``need`` that ``cols`` lacks, and the ones it has."""
+    missing = [c for c in need if c not in cols]
+    if missing:
+        raise InputError(
+            f"missing column(s) {', '.join(missing)} (need {', '.join(need)}; the header has "
+            f"{', '.join(cols) or 'nothing'})",
+            str(path),
+        )
 
 
 def _floats(values: NDArray, name: str, path: Path, row) -> NDArray[np.float64]:

@@ -20,7 +20,7 @@ from tumblenav.importers.calibration import (
     load_context,
     stereo_calibration,
 )
-from tumblenav.importers.tables import read_table, row_name
+from tumblenav.importers.tables import missing_columns, read_table, row_name
 from tumblenav.measurements import StereoMeasurements
 
 COLUMNS = ("t_s", "feature_id", "u_left_px", "v_left_px", "u_right_px", "v_right_px")
@@ -52,12 +52,10 @@ def read_tracks(path: Path) -> TrackTable:
     """The rows of a tracks file, checked: InputError naming the file and row for a missing
     column, unsorted times, a feature twice at one time, or a pixel pair with one half NaN."""
     path = Path(path)
-    cols = read_table(path, text=("feature_id",))
-    missing = [c for c in COLUMNS if c not in cols]
-    if missing:
-        raise InputError(
-            f"missing column(s) {', '.join(missing)} (need {', '.join(COLUMNS)})", str(path)
-        )
+    cols = read_table(
+        path, text=("feature_id",), numeric=tuple(c for c in COLUMNS if c != "feature_id")
+    )
+    missing_columns(cols, COLUMNS, path)
     t_all = cols["t_s"]
     fid = cols["feature_id"]
     if len(t_all) == 0:
