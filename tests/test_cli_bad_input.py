@@ -206,11 +206,11 @@ def test_the_report_of_an_unfinished_campaign_says_how_to_finish_it(tmp_path, ca
 
 
 def test_two_commands_on_one_campaign_folder_at_once(tmp_path, capsys):
-    from tumblenav.campaign.runner import _exclusive
+    from tumblenav.campaign.store import CampaignStore
 
     sc = short(tmp_path)
     camp = tmp_path / "camp"
-    with _exclusive(camp):  # as another command writing there now
+    with CampaignStore(camp).exclusive():  # as another command writing there now
         code, _, err = run(["montecarlo", sc, "--runs", 2, "--workers", 1, "-o", camp], capsys)
         one_line_error(code, err, "another tumblenav command is writing this campaign now")
         assert not (camp / "campaign.json").exists()

@@ -121,11 +121,11 @@ def _folder_kind(p: Path) -> str | None:
         return "one estimate"
     summary = p / "summary.json"
     if summary.is_file():
-        import json
+        from tumblenav import io
 
         try:
-            keys = json.loads(summary.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+            keys = io.read_json(summary)
+        except (OSError, InputError):
             keys = {}
         keys = keys if isinstance(keys, dict) else {}
         if "paper" in keys:
@@ -152,11 +152,13 @@ def _check_output(output: Path, command: str) -> None:
     if not str(output).strip() or any(not t.strip() for t in typed):
         raise InputError("an empty path: give a folder", where)
     p = Path(output)
-    for q in (p, *p.parents):
-        if q.exists():
-            if not q.is_dir():
-                raise InputError(f"{q} is a file, not a folder", f"{where} {p}")
-            break
+    # nothing is created before the work starts (a refused command leaves no folder): the
+    # nearest existing folder must be a folder and writable (read-only mounts included)
+    existing = next((q for q in (p, *p.parents) if q.exists()), Path("."))
+    if not existing.is_dir():
+        raise InputError(f"{existing} is a file, not a folder", f"{where} {p}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write in {existing}", f"{where} {p}")
     held = _folder_kind(p)
     if held is not None and held not in _WRITES_INTO[command]:
         raise InputError(
@@ -164,11 +166,6 @@ def _check_output(output: Path, command: str) -> None:
             "summary.json): choose another folder",
             f"{where} {p}",
         )
-    # nothing is created before the work starts (a refused command leaves no folder): the
-    # nearest existing folder must be writable (read-only mounts included, root or not)
-    existing = next((q for q in (p, *p.parents) if q.exists()), Path("."))
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write in {existing}", f"{where} {p}")
 
 
 def _version(value: bool) -> None:
@@ -223,6 +220,7 @@ OutOpt = Annotated[Path, typer.Option("-o", "--output", help="output folder")]
 PlotsOpt = Annotated[bool, typer.Option("--plots/--no-plots", help="also write PNG figures")]
 WorkersOpt = Annotated[int | None, typer.Option(min=1, help="processes (default: all cores)")]
 SchedulerOpt = Annotated[str | None, typer.Option(help="Dask scheduler address")]
+RunSeedOpt = Annotated[int | None, typer.Option(help="run seed (default: the scenario's)", min=0)]
 SeedOpt = Annotated[
     int | None,
     typer.Option(help="base seed (default: the scenario's montecarlo.seed)", min=0),
@@ -264,9 +262,7 @@ def scenarios_show(name: Annotated[str, typer.Argument(help="built-in scenario n
 def simulate(
     scenario: ScenarioArg,
     output: OutOpt = Path("out/simulate"),
-    seed: Annotated[
-        int | None, typer.Option(help="run seed (default: the scenario's)", min=0)
-    ] = None,
+    seed: RunSeedOpt = None,
     plots: PlotsOpt = True,
 ) -> None:
     """Simulate the truth and the measurements; write truth.nc and measurements.nc."""
@@ -287,9 +283,7 @@ def estimate(
     measurements: Annotated[
         Path | None, typer.Option(help="folder with measurements.nc (and truth.nc) to use")
     ] = None,
-    seed: Annotated[
-        int | None, typer.Option(help="run seed (default: the scenario's)", min=0)
-    ] = None,
+    seed: RunSeedOpt = None,
     plots: PlotsOpt = True,
 ) -> None:
     """Estimate one run; write estimates.nc, summary.json and error figures."""

@@ -20,7 +20,6 @@ already stored are never recomputed into the store.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import secrets
@@ -254,31 +253,6 @@ def scenario_hash(scenario: Scenario) -> str:
     return hashlib.sha256(scenario_to_yaml(scenario).encode()).hexdigest()[:16]
 
 
-@contextlib.contextmanager
-def _exclusive(folder: Path):
-    """Hold ``folder/.lock`` exclusively while a campaign writes there: a second command on
-    the same folder at the same time is refused (InputError) instead of mixing its runs, its
-    campaign.json and its summary with the first's (an advisory lock, released when this
-    process ends, however it ends)."""
-    import fcntl
-
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / ".lock", "a+b") as fh:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise InputError(
-                "another tumblenav command is writing this campaign now: wait for it to "
-                "finish (then run this one again to resume or extend it), or choose another "
-                "folder",
-                str(folder),
-            ) from None
-        try:
-            yield
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-
-
 def run_campaign(
     scenario: Scenario,
     estimator_name: str,
@@ -295,12 +269,13 @@ def run_campaign(
     The estimator is checked against the scenario before anything runs (InputError). On an
     interrupt (:class:`Interrupted` or ``KeyboardInterrupt``) the workers are stopped, the
     finished runs stay stored, and :class:`Interrupted` carries in ``kept`` what was kept and
-    how to resume. One command at a time writes a campaign folder (:func:`_exclusive`).
+    how to resume. One command at a time writes a campaign folder
+    (:meth:`CampaignStore.exclusive`).
     """
     est = est_base.get_for(estimator_name, scenario)
     if runs < 1:
         raise InputError("--runs must be at least 1")
-    with _exclusive(Path(out_dir)):
+    with CampaignStore(Path(out_dir)).exclusive():
         return _run_campaign(
             scenario, est, estimator_name, runs, out_dir, workers, scheduler, console,
             chunk_size, base_seed,

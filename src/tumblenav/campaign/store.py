@@ -15,8 +15,10 @@ for any N > k), so a resumed or enlarged campaign reproduces the same runs.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,6 +64,30 @@ class CampaignStore:
 
     def failed_path(self, k: int) -> Path:
         return self.runs_dir / f"run_{k:06d}.failed.json"
+
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold ``root/.lock`` exclusively while a campaign writes here: a second command on
+        the same folder at the same time is refused (InputError) instead of mixing its runs,
+        its campaign.json and its summary with the first's (an advisory lock, released when
+        this process ends, however it ends)."""
+        import fcntl
+
+        self.root.mkdir(parents=True, exist_ok=True)
+        with open(self.root / ".lock", "a+b") as fh:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise InputError(
+                    "another tumblenav command is writing this campaign now: wait for it to "
+                    "finish (then run this one again to resume or extend it), or choose "
+                    "another folder",
+                    str(self.root),
+                ) from None
+            try:
+                yield
+            finally:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
     def open(self, spec: dict[str, Any]) -> list[str]:
         """Create the folder, or check that an existing one holds the same campaign, computed

@@ -110,9 +110,8 @@ def read_ply(path: Path) -> Array:
     if fmt == "ascii":
         rows = data[offset:].decode("ascii", "replace").splitlines()
         rows = [r for r in rows if r.strip()]
-        if len(rows) != count and len(elements) == 1:
-            raise InputError(f"{len(rows)} vertex lines, the header says {count}", str(path))
-        if len(rows) < count:
+        # fewer lines than vertices, or other lines after them with no other element
+        if len(rows) < count or (len(elements) == 1 and len(rows) != count):
             raise InputError(f"{len(rows)} vertex lines, the header says {count}", str(path))
         rows = rows[:count]
         out = np.empty((count, 3))

@@ -35,6 +35,7 @@ end's view, the steps on a frozen belief folded per run, :func:`run_filter`) and
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -52,8 +53,6 @@ __all__ = ["HuEKF", "histories", "parse_tuning", "run_filter"]
 def _check_size(measurements: Any, name: str) -> None:
     """Refuse a run whose covariance history cannot fit in this machine's memory: the state
     carries 3 coordinates per feature tracked and a run keeps one covariance per epoch."""
-    import os
-
     uv = getattr(measurements, "uv", None)
     if uv is None:
         return
