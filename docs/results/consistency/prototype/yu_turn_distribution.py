@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, "/work/main/benchmarks")
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[4] / "benchmarks"))
 from scipy import stats
 from yu2019_fix_errors import fix_errors, gross
 

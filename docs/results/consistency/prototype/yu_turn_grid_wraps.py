@@ -10,7 +10,7 @@ the filter's fix model at scale 1 (fixes.fix_noise, white and slow), binned by t
 Usage: python yu_turn_grid_wraps.py SCENARIO RUNS (e.g. yu2019 0,1,2,3)
 """
 import sys, numpy as np
-sys.path.insert(0, "/work/main/benchmarks")
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[4] / "benchmarks"))
 from yu2019_fix_errors import fix_errors, gross
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import target_model

@@ -6,7 +6,7 @@ autocorrelation at lags 1, 10, 100 scans, and the two tilts' spread and mean.
 Usage: python yu_turn_per_face.py SCENARIO RUNS (e.g. yu2019 4)
 """
 import sys, numpy as np
-sys.path.insert(0, "/work/main/benchmarks")
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[4] / "benchmarks"))
 from yu2019_fix_errors import fix_errors, gross
 from tumblenav.scenario import load_scenario
 sc = load_scenario(sys.argv[1]); runs = int(sys.argv[2])
