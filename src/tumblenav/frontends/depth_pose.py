@@ -8,7 +8,9 @@ For a rectangle P of the model (``R_MP``, centre ``c_M``) seen as a plane with f
 rectangle is its centre). The rectangle's four-fold symmetry (Fig. 2) is resolved against a
 predicted attitude when one is given (eq. 21-25); without one the fix is flagged ambiguous.
 A plane whose sides match no known rectangle (another surface, or a rectangle seen only in
-part) gives no fix, and the reason is returned.
+part) gives no fix, and the reason is returned. With ``edge_turn`` the frame's turn about the
+normal is refitted to the face's edges (:func:`tumblenav.frontends.planes.edge_turn`;
+tumblenav, beyond Yu 2019), its variance kept in ``PoseFix.turn_var``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ from tumblenav.frontends.planes import (
     rectangle_sides,
     side_mismatch,
 )
+from tumblenav.frontends.planes import (
+    edge_turn as edge_turn_fit,
+)
 from tumblenav.settings_rules import positive_or_rule
 from tumblenav.target_model import TargetModel
 
@@ -46,6 +51,7 @@ class PoseFix:
     ambiguous: bool  # True when no prediction resolved the four-fold symmetry
     candidates: tuple = ()  # every (R_SM, p_MinS) consistent with this rectangle
     R_MP: Array | None = None  # the recognised rectangle's frame in M
+    turn_var: float | None = None  # variance (rad^2) of the turn from the edges, if used
 
 
 def pose_fixes(
@@ -58,6 +64,7 @@ def pose_fixes(
     rel_tol: float = 0.08,
     min_points: int = 50,
     p_MinS_predicted: Array | None = None,
+    edge_turn: bool = False,
 ) -> tuple[list[PoseFix], list[str]]:
     """All rectangle fixes in one cloud, and why the other planes were skipped. With a
     predicted origin ``p_MinS_predicted`` as well, candidates of equal attitude (faces of
@@ -100,6 +107,13 @@ def pose_fixes(
             dist = distribution_matrix(inl, ray_footprint_weights(inl, plane.normal))
         R_SP = rectangle_frame(dist)
         centre = dist.centroid
+        turn_var = None
+        if edge_turn:
+            refined = edge_turn_fit(inl, R_SP, centre, rects[0].sides_m, sigma_m, pts, threshold_m)
+            if refined is not None:
+                c, s = np.cos(refined[0]), np.sin(refined[0])
+                R_SP = R_SP @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+                turn_var = refined[1]
         # candidates: every rectangle with these sides x the four symmetric frames (Fig. 2);
         # the prediction picks the closest attitude (eq. 21-25), faces of equal size included
         cands = [(r, R_SP @ S @ r.R_MP.T) for r in rects for S in RECTANGLE_SYMMETRIES]
@@ -130,6 +144,7 @@ def pose_fixes(
                 R_SM_predicted is None,
                 tuple((R, centre - R @ r.centre_M) for r, R in cands),
                 rect.R_MP,
+                turn_var,
             )
         )
     return fixes, skipped
@@ -260,6 +275,13 @@ class PlanesTuning(BaseModel):
     )
     plane_threshold_sigmas: float = Field(
         3.0, gt=0, description="with plane_threshold_m 'range_noise': the threshold in sigmas"
+    )
+    edge_turn: bool = Field(
+        True,
+        description="refine each rectangle's turn about its normal from its edges, each "
+        "bracketed between a grid line's last return and the next ray "
+        "(planes.edge_turn; tumblenav, beyond Yu 2019's second moments, which turn with the "
+        "ray grid's phase along the edges); false: the second moments' (eq. 5)",
     )
     plane_threshold_min_m: float = Field(
         1e-3, gt=0, description="with plane_threshold_m 'range_noise': its floor (m)"

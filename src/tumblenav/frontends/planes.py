@@ -277,3 +277,277 @@ def resolve_symmetry(R_CP: Array, R_CP_predicted: Array) -> tuple[Array, int]:
     score = np.einsum("ij,kij->k", R_CP_predicted, cands)
     k = int(np.argmax(score))
     return cands[k], k
+
+
+KAPPA_SPREAD = 0.2  # the relative uncertainty of the grid's phase drift along a side
+
+
+def ray_lattice(uv: Array) -> Array | None:
+    """The two step vectors (2, 2) of a ray grid seen in the sensor's image-plane coordinates
+    ``uv`` (N, 2) (``x / y, z / y`` for a boresight along +y), from the points' nearest
+    neighbours (tumblenav): the most common nearest-neighbour direction and the shortest
+    common one across it. None when fewer than 8 points or no second direction."""
+    from scipy.spatial import cKDTree
+
+    if len(uv) < 8:
+        return None
+    d, j = cKDTree(uv).query(uv, k=5)
+    vec = (uv[j[:, 1:]] - uv[:, None, :]).reshape(-1, 2)
+    dist = d[:, 1:].ravel()
+    ok = np.isfinite(dist) & (dist > 0)
+    vec, dist = vec[ok], dist[ok]
+    if len(vec) < 8:
+        return None
+    vec = np.where((vec[:, 1] < 0) | ((vec[:, 1] == 0) & (vec[:, 0] < 0)), -1, 1)[:, None] * vec
+    ang = np.arctan2(vec[:, 1], vec[:, 0]) % np.pi
+    short = dist < 1.3 * np.quantile(dist, 0.1)
+
+    def peak(mask: NDArray[np.bool_]) -> Array | None:
+        if mask.sum() < 4:
+            return None
+        a = ang[mask]
+        hist, edges = np.histogram(a, bins=36, range=(0.0, np.pi))
+        i = int(np.argmax(hist))
+        c = 0.5 * (edges[i] + edges[i + 1])
+        near = mask & (np.abs((ang - c + np.pi / 2) % np.pi - np.pi / 2) < np.pi / 36)
+        v = vec[near]
+        v = np.where((v @ np.array([np.cos(c), np.sin(c)]) < 0)[:, None], -v, v)
+        return np.median(v, axis=0)
+
+    g1 = peak(short)
+    if g1 is None:
+        return None
+    across = np.abs(np.sin(ang - np.arctan2(g1[1], g1[0]))) > np.sin(np.radians(20.0))
+    if across.sum() < 4:
+        return None
+    g2 = peak(across & (dist < 1.3 * np.quantile(dist[across], 0.1)))
+    if g2 is None:
+        return None
+    return np.array([g1, g2])
+
+
+def edge_turn(
+    points_S: Array,
+    R_SP: Array,
+    centre_S: Array,
+    sides_m: tuple[float, float],
+    sigma: float = 0.0,
+    cloud_S: Array | None = None,
+    threshold_m: float = 0.0,
+) -> tuple[float, float, int] | None:
+    """The turn ``delta`` (rad) about the normal that aligns the rectangle frame ``R_SP`` (X
+    short side, Y long side) with the face's edges, its variance (rad^2), and the number of
+    edge points used (tumblenav, beyond Yu 2019's second moments; None when the edges do not
+    determine it).
+
+    Why: the second moments of a face sampled by a regular ray grid turn with the grid's
+    phase along the edges (docs/results/consistency.md, Yu section: a per-face bias of up to
+    8 mrad and heavy tails). Here each line of the grid that ends on the face brackets the
+    edge between its last return and the next ray: that ray (one grid step on in the
+    sensor's image plane, :func:`ray_lattice`) is intersected with the face's plane and the
+    edge point taken midway. The bracket holds only if the next ray returned nothing or a
+    point behind the plane (a point in front may hide the face, one on it is the face's), and
+    none of the four rays after it is on the face (a return lost to an outlier). The edge
+    points are assigned to the nearest side (those within a step of a corner left out), one
+    turn and four side offsets are fitted by weighted least squares (linear in the small
+    turn; weights ``1 / (bracket^2 / 12 + sigma^2)``), and points more than 1.2 half-brackets
+    off are dropped (a ray lost to an outlier at the edge) before fitting again.
+
+    The variance: the edge's place in each bracket is not independent from one grid line to
+    the next but drifts with the grid's phase along the side (a sawtooth, constant when the
+    grid is aligned with the side). Per side and grid direction, the phase drift per metre
+    along the side follows from the two grid steps on the plane; the turn's variance is the
+    fitted slope's mean square over a uniform starting phase, combined over the sides with
+    the least squares' weights, plus the range noise's part."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points_S, dtype=float)
+    if len(p) < 8 or np.any(p[:, 1] <= 0):
+        return None
+    n = R_SP[:, 2]
+    uv = p[:, [0, 2]] / p[:, 1:2]
+    G = ray_lattice(uv)
+    if G is None:
+        return None
+    tree = cKDTree(uv)
+    # a ray grid: most returns have a neighbour one step on along each grid direction (a
+    # scanner's irregular pattern has not, and its "edges" would be noise)
+    for g in G:
+        d, _ = tree.query(uv + g, distance_upper_bound=0.35 * float(np.linalg.norm(g)))
+        if np.mean(np.isfinite(d)) < 0.5:
+            return None
+    if cloud_S is None:
+        cloud = p
+    else:
+        cloud = np.asarray(cloud_S, dtype=float)
+        cloud = cloud[np.all(np.isfinite(cloud), axis=1) & (cloud[:, 1] > 0)]
+    cloud_tree = cKDTree(cloud[:, [0, 2]] / cloud[:, 1:2])
+    margin = max(threshold_m, 3.0 * sigma)
+    b, a = sides_m
+    Pxy = R_SP[:, :2]
+
+    def on_plane(uvs: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """In-plane coordinates of the rays ``uvs`` where they meet the plane, and whether
+        they do (in front of the sensor)."""
+        ray = np.column_stack([uvs[:, 0], np.ones(len(uvs)), uvs[:, 1]])
+        denom = ray @ n
+        ok = np.abs(denom) > 1e-9
+        t = (centre_S @ n) / np.where(ok, denom, 1.0)
+        return (ray * t[:, None] - centre_S) @ Pxy, ok & (t > 0)
+
+    rows: list[tuple] = []  # (mid (2,), step (2,), other step (2,), side, family)
+    for family, (g, g_other) in enumerate(
+        ((G[0], G[1]), (-G[0], G[1]), (G[1], G[0]), (-G[1], G[0]))
+    ):
+        gl = float(np.linalg.norm(g))
+        dist, _ = tree.query(uv + g, distance_upper_bound=0.35 * gl)
+        last = ~np.isfinite(dist)
+        # rays lost to outliers inside the face: one of the next few is on the face again
+        for j in range(2, 6):
+            if not last.any():
+                break
+            dist2, _ = tree.query(uv[last] + j * g, distance_upper_bound=0.35 * gl)
+            last[np.flatnonzero(last)[np.isfinite(dist2)]] = False
+        if not last.any():
+            continue
+        uvn = uv[last] + g
+        q_next, ok = on_plane(uvn)
+        q_other, ok_other = on_plane(uv[last] + g_other)
+        ok &= ok_other
+        # the next ray's own return: in front of the plane (another part may hide the face)
+        # or on it (a point of the face the plane left out): not bracketed
+        dn, jn = cloud_tree.query(uvn, distance_upper_bound=0.35 * gl)
+        has = np.isfinite(dn)
+        behind = np.ones(len(uvn), dtype=bool)
+        if has.any():
+            # farther along the ray than the plane (the rays' y is 1: ranges scale with y)
+            t_plane = (centre_S @ n) / np.where(
+                np.abs(uvn[has] @ n[[0, 2]] + n[1]) > 1e-9, uvn[has] @ n[[0, 2]] + n[1], 1.0
+            )
+            ray_len = np.sqrt(1.0 + np.sum(uvn[has] ** 2, axis=1))
+            behind[has] = (cloud[jn[has], 1] - t_plane) * ray_len > margin
+        ok &= behind
+        q_last = (p[last] - centre_S) @ Pxy
+        # the range noise moves a return along its ray: sigma sin(i) in the plane, half of
+        # it at the midpoint
+        r_last = p[last] / np.linalg.norm(p[last], axis=1, keepdims=True)
+        noise_mid = 0.5 * sigma * np.sqrt(np.clip(1.0 - (r_last @ n) ** 2, 0.0, 1.0))
+        for i in np.flatnonzero(ok):
+            step = q_next[i] - q_last[i]
+            mid = q_last[i] + 0.5 * step
+            x, y = mid
+            side = (
+                (0 if x > 0 else 1) if abs(x) / (b / 2) >= abs(y) / (a / 2) else (2 if y > 0 else 3)
+            )
+            across = abs(step[0]) if side < 2 else abs(step[1])
+            h = float(np.linalg.norm(step))
+            if (abs(abs(x) - b / 2) < h and abs(abs(y) - a / 2) < h) or across < 0.3 * h:
+                continue
+            rows.append((mid, step, q_other[i] - q_last[i], side, family, noise_mid[i]))
+    if len(rows) < 6:
+        return None
+    E = np.array([r[0] for r in rows])
+    step = np.array([r[1] for r in rows])
+    other = np.array([r[2] for r in rows])
+    S = np.array([r[3] for r in rows])
+    fam = np.array([r[4] for r in rows])
+    sn = np.array([r[5] for r in rows])
+    long_side = S < 2
+    obs = np.where(long_side, E[:, 0], E[:, 1])  # across the side
+    along = np.where(long_side, E[:, 1], E[:, 0])
+    L = np.abs(np.where(long_side, step[:, 0], step[:, 1]))  # the bracket across the side
+    w = 1.0 / (L**2 / 12.0 + sn**2)
+    # long sides: x_i = d_s - delta y_i; short sides: y_i = d_s + delta x_i
+    A = np.zeros((len(E), 5))
+    A[:, 0] = np.where(long_side, -E[:, 1], E[:, 0])
+    A[np.arange(len(E)), 1 + S] = 1.0
+    use = np.ones(len(E), dtype=bool)
+    x = np.zeros(5)
+    for _ in range(4):
+        if use.sum() < 6:
+            return None
+        Aw = A[use] * w[use, None]
+        x = np.linalg.lstsq(A[use].T @ Aw, Aw.T @ obs[use], rcond=None)[0]
+        keep = np.abs(obs - A @ x) <= 0.6 * L + 3.0 * sn
+        if np.array_equal(keep, use):
+            break
+        use = keep
+    if use.sum() < 6:
+        return None
+    if abs(x[0]) > 0.1:  # the moments are never this far off: the edges are not the face's
+        return None
+    var = _sawtooth_turn_variance(
+        along[use], L[use], w[use], S[use], fam[use], step[use], other[use], long_side[use], sn[use]
+    )
+    if not np.isfinite(var):
+        return None
+    return float(x[0]), var, int(use.sum())
+
+
+def _sawtooth_turn_variance(along, L, w, side, fam, step, other, long_side, sn) -> float:
+    """The variance of :func:`edge_turn`'s turn (see there): per (side, grid direction)
+    group, the phase of the edge in its brackets drifts by ``-(n . g') / (n . g)`` per grid
+    line, which advances ``t . g' - (n . g' / n . g) t . g`` along the side (``g`` the
+    bracket's step, ``g'`` the other grid step, ``n``, ``t`` the side's normal and
+    direction); the group's slope error is averaged over 32 starting phases."""
+    Wsum, num = 0.0, 0.0
+    phases = (np.arange(32) + 0.5) / 32
+    for s in range(4):
+        for f in range(4):
+            m = (side == s) & (fam == f)
+            if m.sum() < 2:
+                continue
+            y, Lm, wm = along[m], L[m], w[m]
+            yc = y - np.sum(wm * y) / np.sum(wm)
+            W = float(np.sum(wm * yc**2))
+            if W <= 0:
+                continue
+            nrm = np.array([1.0, 0.0]) if long_side[m][0] else np.array([0.0, 1.0])
+            tng = np.array([-nrm[1], nrm[0]])
+            g, go = np.median(step[m], axis=0), np.median(other[m], axis=0)
+            ng, ngo = nrm @ g, nrm @ go
+            if abs(ng) < 1e-12:
+                continue
+            drift = -ngo / ng  # phase per grid line
+            advance = tng @ go + drift * (tng @ g)  # metres along the side per grid line
+            kappa = drift / advance if abs(advance) > 1e-12 else 0.0
+            # the drift varies over the face (perspective) and its estimate with it: averaged
+            # over +-KAPPA_SPREAD of it, so that a drift of whole periods (whose slope errors
+            # cancel) is not taken at its word
+            kap = kappa * (1.0 + KAPPA_SPREAD * np.linspace(-1.0, 1.0, 5))
+            phi = (phases[None, :, None] + kap[:, None, None] * y[None, None, :]) % 1.0
+            e = (Lm[None, :] * (phi - 0.5)).reshape(-1, len(y))  # the edge points' errors
+            slope = _gated_slopes(e, y, wm, Lm, sn[m])
+            Wsum += W
+            num += W**2 * float(np.mean(slope**2))
+            num += float(np.sum((wm * yc) ** 2 * sn[m] ** 2))
+    if Wsum <= 0:
+        return float("nan")
+    return num / Wsum**2
+
+
+def _gated_slopes(e: Array, y: Array, w: Array, L: Array, sn: Array) -> Array:
+    """Per row of ``e`` (errors across a side at positions ``y``), the slope that
+    :func:`edge_turn`'s fit takes from them: weighted least squares of an offset and a slope,
+    points more than ``0.6 L + 3 sn`` off (``sn`` each point's noise) dropped and fitted again (a wrap of the phase
+    inside the side is a step of one bracket, which the gate cuts off)."""
+    use = np.ones(e.shape, dtype=bool)
+    slope = np.zeros(len(e))
+    for _ in range(4):
+        ww = np.where(use, w[None, :], 0.0)
+        sw = ww.sum(axis=1)
+        ok = sw > 0
+        sw = np.where(ok, sw, 1.0)
+        ym = (ww * y).sum(axis=1) / sw
+        em = (ww * e).sum(axis=1) / sw
+        yc = y[None, :] - ym[:, None]
+        syy = (ww * yc**2).sum(axis=1)
+        slope = np.where(
+            syy > 0, (ww * yc * (e - em[:, None])).sum(axis=1) / np.where(syy > 0, syy, 1.0), 0.0
+        )
+        res = e - em[:, None] - slope[:, None] * yc
+        keep = np.abs(res) <= 0.6 * L[None, :] + 3.0 * sn[None, :]
+        if np.array_equal(keep, use):
+            break
+        use = keep
+    return slope

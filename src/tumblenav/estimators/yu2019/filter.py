@@ -176,7 +176,14 @@ class DepthSteps:
             p_pred = R_CL[k] @ measurement(x, R_LI[k])[0]
         thr = plane_threshold(self.tun, self.sigma)
         return pose_fixes(
-            pts, self.model, thr, self.rng, self.sigma, R_SM_pred, p_MinS_predicted=p_pred
+            pts,
+            self.model,
+            thr,
+            self.rng,
+            self.sigma,
+            R_SM_pred,
+            p_MinS_predicted=p_pred,
+            edge_turn=self.tun.frontend.edge_turn,
         )[0]
 
     def initialise(self, k: int, previous: Array | None = None) -> tuple[Belief | None, StepInfo]:
@@ -347,6 +354,7 @@ class DepthSteps:
                 tun.position_noise_scale,
                 tun.fix_error_oblique_spacings if slow_states else 0.0,
                 tun.fix_error_oblique_normal if slow_states else 0.0,
+                tun.edge_turn_floor,
             )
             scales = None
             if learn:

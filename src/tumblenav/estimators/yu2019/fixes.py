@@ -124,6 +124,7 @@ def fix_noise(
     position_scale: float = 1.0,
     oblique_trace_spacings: float = 0.0,
     oblique_normal: float = 0.0,
+    edge_turn_floor: float = 0.0,
 ) -> FixNoise:
     """The error model of one fix (:class:`FixNoise`), tumblenav's.
 
@@ -142,7 +143,11 @@ def fix_noise(
     0.1-0.28, about the long side 0.04-0.18, the rest below 0.06) decorrelates over a view
     turn of about 7 ray spacings across the face (``decorrelation_spacings`` x ``h / a``,
     0.17-0.26 rad there, fitted 0.11-0.37), for steps of 0.009-0.035 rad per scan; the rest
-    is white."""
+    is white.
+
+    A fix whose turn about the normal came from the face's edges (``fx.turn_var``,
+    :func:`tumblenav.frontends.planes.edge_turn`) takes that variance instead of the edge
+    phase's, at least ``edge_turn_floor`` of it."""
     b, a = fx.sides_m
     n = max(fx.n_points, 3)
     grid = a * b / n / 12  # h^2 / 12
@@ -167,6 +172,10 @@ def fix_noise(
     base[1, 1] = 12.0 * ls / (n * b**2) + c**2  # about the long side
     # about the normal: the edges' phase across the short side over half the long side
     base[2, 2] = 4.0 * ip[0, 0] / a**2 + c**2
+    if getattr(fx, "turn_var", None) is not None:
+        # the turn from the edges (planes.edge_turn), with its own sawtooth variance, at
+        # least edge_turn_floor of the second moments' above
+        base[2, 2] = max(fx.turn_var, edge_turn_floor * (base[2, 2] - c**2)) + c**2
     base[3:5, 3:5] = ip + (c * b / 2) ** 2 * np.eye(2)
     base[5, 5] = ls / n
     base[:3, :3] *= attitude_scale

@@ -150,6 +150,19 @@ class DepthTuning(BaseModel):
         "measured on the yu scenarios of issue 18: the rectangles' centres sit 0.08-0.12 h "
         "nearer the sensor, averaged over the views, the same in every run; 0: none)",
     )
+    edge_turn_floor: float = Field(
+        0.12,
+        ge=0,
+        description="with frontend.edge_turn: a fix's turn about its normal from the edges "
+        "gets the edges' own variance (planes.edge_turn: the grid's phase drifting along each "
+        "side), but at least this fraction of the second moments' (the edge phase across the "
+        "short side over half the long side, 4 h^2/(12 a^2)): the edges' errors are 0.3-0.5x "
+        "the moments' RMS but come in runs of one sign at oblique views, which the sawtooth "
+        "model misses. Measured, 20 runs (docs/results/consistency.md, Yu section): 0 leaves "
+        "yu_large_50m 1.34 and yu_small_10m 1.15 over-confident, yu2019 0.989; 0.12 puts "
+        "those two, yu_outliers and yu_tumble inside and yu2019 at 0.845; 0.08 yu2019 0.89 "
+        "but yu_small_10m 1.21",
+    )
     fix_noise_adaptive: bool = Field(
         True,
         description="learn a variance scale per fix component (attitude about and centre "
