@@ -432,9 +432,13 @@ def edge_turn(
         # it at the midpoint
         r_last = p[last] / np.linalg.norm(p[last], axis=1, keepdims=True)
         noise_mid = 0.5 * sigma * np.sqrt(np.clip(1.0 - (r_last @ n) ** 2, 0.0, 1.0))
+        # the grid's steps on the plane from the rays alone (the returns' range noise, sigma
+        # sin(i) in the plane, would swamp the small drift across a side that the variance
+        # needs); the midpoint from the return itself, with its noise
+        q_ray, _ = on_plane(uv[last])
         for i in np.flatnonzero(ok):
-            step = q_next[i] - q_last[i]
-            mid = q_last[i] + 0.5 * step
+            step = q_next[i] - q_ray[i]
+            mid = q_last[i] + 0.5 * (q_next[i] - q_last[i])
             x, y = mid
             side = (
                 (0 if x > 0 else 1) if abs(x) / (b / 2) >= abs(y) / (a / 2) else (2 if y > 0 else 3)
@@ -443,7 +447,7 @@ def edge_turn(
             h = float(np.linalg.norm(step))
             if (abs(abs(x) - b / 2) < h and abs(abs(y) - a / 2) < h) or across < 0.3 * h:
                 continue
-            rows.append((mid, step, q_other[i] - q_last[i], side, family, noise_mid[i]))
+            rows.append((mid, step, q_other[i] - q_ray[i], side, family, noise_mid[i]))
     if len(rows) < 6:
         return None
     E = np.array([r[0] for r in rows])

@@ -158,10 +158,10 @@ class DepthTuning(BaseModel):
         "side), but at least this fraction of the second moments' (the edge phase across the "
         "short side over half the long side, 4 h^2/(12 a^2)): the edges' errors are 0.3-0.5x "
         "the moments' RMS but come in runs of one sign at oblique views, which the sawtooth "
-        "model misses. Measured, 20 runs (docs/results/consistency.md, Yu section): 0 leaves "
-        "yu_large_50m 1.34 and yu_small_10m 1.15 over-confident, yu2019 0.989; 0.12 puts "
-        "those two, yu_outliers and yu_tumble inside and yu2019 at 0.845; 0.08 yu2019 0.89 "
-        "but yu_small_10m 1.21",
+        "model misses. Measured, 20 runs (docs/results/consistency.md, Yu section): 0.12 puts "
+        "yu2019 (0.946), yu_small_10m, yu_large_50m, yu_outliers and yu_tumble inside; "
+        "without a floor yu_large_50m was 1.34 (before the grid steps were taken from the "
+        "rays)",
     )
     fix_noise_adaptive: bool = Field(
         True,
