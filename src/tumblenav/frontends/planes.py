@@ -386,14 +386,14 @@ def edge_turn(
     b, a = sides_m
     Pxy = R_SP[:, :2]
 
-    def on_plane(uvs: Array) -> tuple[Array, NDArray[np.bool_]]:
-        """In-plane coordinates of the rays ``uvs`` where they meet the plane, and whether
-        they do (in front of the sensor)."""
+    def on_plane(uvs: Array) -> tuple[Array, NDArray[np.bool_], Array]:
+        """In-plane coordinates of the rays ``uvs`` where they meet the plane, whether they
+        do (in front of the sensor), and the meeting point's y (the rays' y is 1)."""
         ray = np.column_stack([uvs[:, 0], np.ones(len(uvs)), uvs[:, 1]])
         denom = ray @ n
         ok = np.abs(denom) > 1e-9
         t = (centre_S @ n) / np.where(ok, denom, 1.0)
-        return (ray * t[:, None] - centre_S) @ Pxy, ok & (t > 0)
+        return (ray * t[:, None] - centre_S) @ Pxy, ok & (t > 0), t
 
     rows: list[tuple] = []  # (mid (2,), step (2,), other step (2,), side, family)
     for family, (g, g_other) in enumerate(
@@ -411,8 +411,8 @@ def edge_turn(
         if not last.any():
             continue
         uvn = uv[last] + g
-        q_next, ok = on_plane(uvn)
-        q_other, ok_other = on_plane(uv[last] + g_other)
+        q_next, ok, t_next = on_plane(uvn)
+        q_other, ok_other, _ = on_plane(uv[last] + g_other)
         ok &= ok_other
         # the next ray's own return: in front of the plane (another part may hide the face)
         # or on it (a point of the face the plane left out): not bracketed
@@ -421,11 +421,8 @@ def edge_turn(
         behind = np.ones(len(uvn), dtype=bool)
         if has.any():
             # farther along the ray than the plane (the rays' y is 1: ranges scale with y)
-            t_plane = (centre_S @ n) / np.where(
-                np.abs(uvn[has] @ n[[0, 2]] + n[1]) > 1e-9, uvn[has] @ n[[0, 2]] + n[1], 1.0
-            )
             ray_len = np.sqrt(1.0 + np.sum(uvn[has] ** 2, axis=1))
-            behind[has] = (cloud[jn[has], 1] - t_plane) * ray_len > margin
+            behind[has] = (cloud[jn[has], 1] - t_next[has]) * ray_len > margin
         ok &= behind
         q_last = (p[last] - centre_S) @ Pxy
         # the range noise moves a return along its ray: sigma sin(i) in the plane, half of
@@ -435,7 +432,7 @@ def edge_turn(
         # the grid's steps on the plane from the rays alone (the returns' range noise, sigma
         # sin(i) in the plane, would swamp the small drift across a side that the variance
         # needs); the midpoint from the return itself, with its noise
-        q_ray, _ = on_plane(uv[last])
+        q_ray = on_plane(uv[last])[0]
         for i in np.flatnonzero(ok):
             step = q_next[i] - q_ray[i]
             mid = q_last[i] + 0.5 * (q_next[i] - q_last[i])
