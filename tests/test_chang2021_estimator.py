@@ -102,6 +102,31 @@ def test_feature_positions_and_velocities_are_consistent_with_their_covariances(
     assert np.abs(e.mean(axis=0)).max() < 5 * e.std(axis=0).max() / np.sqrt(len(e))
 
 
+def test_feature_tracks_of_sparse_sightings_are_those_of_the_full_run():
+    """feature_tracks works on the observed (epoch, feature) entries only (image front ends
+    create thousands of track IDs, ~3 % of them seen at a time): hiding 70 % of a run's
+    sightings at random leaves every remaining entry's position, covariance and velocity as
+    the full run gives them (a velocity where both of its epochs remain), and the hidden ones
+    unobserved, NaN, the identity for V."""
+    from dataclasses import replace
+
+    sc = _scenario(10.0)
+    _, meas = simulate(sc, 2)
+    full = feature_tracks(meas)
+    rng = np.random.default_rng(11)
+    keep = rng.random(meas.observed.shape[::2]) < 0.3  # (n, N)
+    obs = meas.observed & keep[:, None, :]
+    uv = np.where(obs[..., None], meas.uv, np.nan)
+    sp = feature_tracks(replace(meas, uv=uv, observed=obs))
+    assert sp.ok_p.sum() > 100 and sp.ok_v.sum() > 20
+    assert np.array_equal(sp.ok_p, full.ok_p & keep)
+    assert np.array_equal(sp.ok_v, full.ok_v & keep & np.vstack([keep[:1], keep[:-1]]))
+    for a, b, ok in ((sp.p, full.p, sp.ok_p), (sp.P, full.P, sp.ok_p), (sp.v, full.v, sp.ok_v)):
+        assert np.allclose(a[ok], b[ok], rtol=1e-12, atol=0.0)
+    assert np.all(np.isnan(sp.p[~sp.ok_p])) and np.all(np.isnan(sp.v[~sp.ok_v]))
+    assert np.allclose(sp.V[~sp.ok_v], np.eye(3))
+
+
 def test_eq29_recovers_a_rigid_rotation():
     rng = np.random.default_rng(2)
     d = rng.normal(size=(10, 3))

@@ -153,50 +153,65 @@ def slide_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
 
 def feature_tracks(meas) -> FeatureTracks:
     """Positions, velocities and covariances of every stereo-observed feature of a run, in L
-    (module docstring). Vectorised over epochs and features; NaN never leaks into ``ok``."""
+    (module docstring). Computed at the observed (epoch, feature) entries only and scattered
+    into the (epochs, features) arrays: an image front end creates thousands of track IDs of
+    which ~100 are seen at a time (chang2021_close: 3762 IDs over 601 epochs, 2.6 % of the
+    entries observed), so the dense computation spent 14.5 s of CPU (0.9 s now) of a 37.6 s
+    ekf-pose run on entries nobody reads. Unobserved entries hold what they held before: position and velocity NaN,
+    the position covariance that of a point 10 m down the rig's y axis turned into L, the
+    velocity covariance the identity. NaN never leaks into ``ok``."""
     rig = meas.rig
     uv = np.asarray(meas.uv, dtype=float)  # (n, 2, N, 2)
     n, _, N, _ = uv.shape
     obs = np.asarray(meas.observed, bool).all(axis=1) & np.all(np.isfinite(uv), axis=(1, 3))
     f, pp, R, o = _rig_arrays(rig)
-    p_C = triangulate_two_ray(
-        uv[:, 0], uv[:, 1], f, pp, R[0], o[0], R[1], o[1]
-    )  # (n, N, 3) m, NaN where it fails
-    ok_p = obs & np.all(np.isfinite(p_C), axis=-1)
-    p_Cs = np.where(ok_p[..., None], p_C, np.array([0.0, 10.0, 0.0]))  # safe fill
     s2 = pixel_variance(meas)
-    P_C, inv_ok = _covariance_C(p_Cs, rig, s2)
-    ok_p &= inv_ok
     R_LC = np.swapaxes(rot.quat_to_matrix(meas.q_CL), -1, -2)  # (n, 3, 3)
-    p_L = np.einsum("tij,tnj->tni", R_LC, p_Cs)
-    P_L = np.einsum("tij,tnjk,tlk->tnil", R_LC, P_C, R_LC)
-    p_L = np.where(ok_p[..., None], p_L, np.nan)
+    fill = np.array([0.0, 10.0, 0.0])  # a safe point for the covariance of unobserved entries
+    P_fill, _ = _covariance_C(fill, rig, s2)
+    P_L = np.broadcast_to(R_LC @ P_fill @ np.swapaxes(R_LC, -1, -2), (N, n, 3, 3))
+    P_L = np.ascontiguousarray(np.swapaxes(P_L, 0, 1))  # (n, N, 3, 3)
+    p_L = np.full((n, N, 3), np.nan)
+    ok_p = np.zeros((n, N), bool)
+    p_Cs = np.tile(fill, (n, N, 1))
+    ti, fi = np.nonzero(obs)
+    if len(ti):
+        p_C = triangulate_two_ray(
+            uv[ti, 0, fi], uv[ti, 1, fi], f, pp, R[0], o[0], R[1], o[1]
+        )  # (M, 3) m, NaN where it fails
+        ok = np.all(np.isfinite(p_C), axis=-1)
+        p_C = np.where(ok[:, None], p_C, fill)
+        P_C, inv_ok = _covariance_C(p_C, rig, s2)
+        ok &= inv_ok
+        p_Cs[ti, fi] = p_C
+        Rt = R_LC[ti]
+        P_L[ti, fi] = np.einsum("mij,mjk,mlk->mil", Rt, P_C, Rt)
+        p_L[ti[ok], fi[ok]] = np.einsum("mij,mj->mi", Rt[ok], p_C[ok])
+        ok_p[ti, fi] = ok
 
     # eq. 26: pixel velocities by differencing consecutive epochs of the track
     v_L = np.full((n, N, 3), np.nan)
     V_L = np.tile(np.eye(3), (n, N, 1, 1))
     ok_v = np.zeros((n, N), bool)
     if n > 1:
-        dt = np.diff(meas.t)[:, None]  # (n-1, 1)
-        both = ok_p[1:] & ok_p[:-1]
-        uv_dot = (uv[1:] - uv[:-1]) / dt[:, :, None, None]  # (n-1, 2, N, 2)
-        uv_dot = np.moveaxis(uv_dot, 2, 1).reshape(n - 1, N, 4)  # (u_l, v_l, u_r, v_r)
-        uv1 = np.moveaxis(uv[1:], 2, 1)  # (n-1, N, 2, 2)
-        A = eq26_rows(np.where(both[..., None, None], uv1, 0.0), p_Cs[1:], rig)
-        AtA = np.einsum("...ki,...kj->...ij", A, A)
-        AtA = np.where(both[..., None, None], AtA, np.eye(3))
-        AtAi = np.linalg.inv(AtA)
-        rhs = np.einsum("...ki,...k->...i", A, np.where(both[..., None], uv_dot, 0.0))
+        dt_all = np.diff(meas.t)  # (n-1,)
+        ti, fi = np.nonzero(ok_p[1:] & ok_p[:-1])  # epoch ti + 1 and the one before
+        dt = dt_all[ti][:, None]  # (M, 1)
+        uv_dot = (uv[ti + 1, :, fi] - uv[ti, :, fi]) / dt[:, :, None]  # (M, 2, 2)
+        uv_dot = uv_dot.reshape(-1, 4)  # (u_l, v_l, u_r, v_r)
+        A = eq26_rows(uv[ti + 1, :, fi], p_Cs[ti + 1, fi], rig)
+        AtAi = np.linalg.inv(np.einsum("...ki,...kj->...ij", A, A))
+        rhs = np.einsum("...ki,...k->...i", A, uv_dot)
         v_C = np.einsum("...ij,...j->...i", AtAi, rhs)  # rho_dot_C, LS solution of eq. 26
-        dR = (R_LC[1:] - R_LC[:-1]) / dt[:, :, None]  # (n-1, 3, 3): dR_LC/dt
-        p_mid = 0.5 * (p_Cs[1:] + p_Cs[:-1])
-        v = np.einsum("tij,tnj->tni", R_LC[1:], v_C) + np.einsum("tij,tnj->tni", dR, p_mid)
-        V_C = (2.0 * s2 / dt[..., None, None] ** 2) * AtAi  # pixel rates: 2 sigma^2 / dt^2
-        V = np.einsum("tij,tnjk,tlk->tnil", R_LC[1:], V_C, R_LC[1:])
-        good = both & np.all(np.isfinite(v), axis=-1)
-        v_L[1:] = np.where(good[..., None], v, np.nan)
-        V_L[1:] = np.where(good[..., None, None], V, np.eye(3))
-        ok_v[1:] = good
+        dR = (R_LC[ti + 1] - R_LC[ti]) / dt[:, :, None]  # (M, 3, 3): dR_LC/dt
+        p_mid = 0.5 * (p_Cs[ti + 1, fi] + p_Cs[ti, fi])
+        v = np.einsum("mij,mj->mi", R_LC[ti + 1], v_C) + np.einsum("mij,mj->mi", dR, p_mid)
+        V_C = (2.0 * s2 / dt[..., None] ** 2) * AtAi  # pixel rates: 2 sigma^2 / dt^2
+        V = np.einsum("mij,mjk,mlk->mil", R_LC[ti + 1], V_C, R_LC[ti + 1])
+        good = np.all(np.isfinite(v), axis=-1)
+        v_L[ti[good] + 1, fi[good]] = v[good]
+        V_L[ti[good] + 1, fi[good]] = V[good]
+        ok_v[ti + 1, fi] = good
     return FeatureTracks(p=p_L, P=P_L, v=v_L, V=V_L, ok_p=ok_p, ok_v=ok_v)
 
 

@@ -77,6 +77,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
 from scipy.stats import chi2
 
 from tumblenav import rotations as rot
@@ -608,8 +609,14 @@ class StateSteps(TrackSteps):
             H[:, :NP] = Hp.reshape(3 * m, NP)
             rows = np.arange(3 * m).reshape(m, 3)
             H[rows[:, :, None], fcols[:, None, :]] = R_LT
-            HP = H @ P
-            S_all = HP @ H.T  # per-feature blocks: H_i P H_i^T
+            # H P and H P H^T from H's blocks (pose columns, one R_LThat per feature; the
+            # features fill P from NA on): the dense products cost ~3m D^2 each
+            HP = H[:, :NP] @ P[:NP, :] + np.einsum(
+                "ij,mjd->mid", R_LT, P[NA:].reshape(m, 3, D)
+            ).reshape(3 * m, D)
+            S_all = HP[:, :NP] @ H[:, :NP].T + np.einsum(
+                "amj,kj->amk", HP[:, NA:].reshape(3 * m, m, 3), R_LT
+            ).reshape(3 * m, 3 * m)  # per-feature blocks: H_i P H_i^T
             S_blk = S_all[rows[:, :, None], rows[:, None, :]] + Sig  # (m, 3, 3)
             d2 = np.einsum("mi,mij,mj->m", nu, np.linalg.inv(S_blk), nu)
             ok = d2 <= chi2.ppf(tun.feature_gate_probability, 3)
@@ -630,7 +637,9 @@ class StateSteps(TrackSteps):
                 Rk[ro[:, :, None], ro[:, None, :]] = Sig[ok]
                 Sk = S_all[np.ix_(r_ok, r_ok)] + Rk
                 L = np.linalg.cholesky(Sk)
-                Kt = np.linalg.solve(L.T, np.linalg.solve(L, HP[r_ok]))  # S^-1 H P = K^T
+                Kt = solve_triangular(  # S^-1 H P = K^T
+                    L, solve_triangular(L, HP[r_ok], lower=True), lower=True, trans="T"
+                )
                 K = Kt.T
                 A = np.eye(D) - K @ Hk
                 P = A @ P @ A.T + K @ Rk @ K.T  # Joseph form
@@ -640,7 +649,7 @@ class StateSteps(TrackSteps):
                 if tun.inertia == "estimated":
                     j = inertia_params(inertia_of(j + dx[_J]))
                 s_map[:, :3] += dx[NA:].reshape(m, 3)
-                w = np.linalg.solve(L, nuk)
+                w = solve_triangular(L, nuk, lower=True)
                 nis, dof = float(w @ w), len(nuk)
                 # rejected features leave the state (suspect tracks)
                 P, s_map = _keep(P, s_map, ok)
