@@ -1,10 +1,11 @@
 """ekf-pose at Chang's printed 59 m on point tracks (fifteenth session, issue 18): where does the
-over-confidence come from? One run, with a copy of slam.py patched by chang_far_fej.patch::
+over-confidence come from? One run, with a copy of slam.py as of 713e9e8 patched by
+chang_far_fej.patch::
 
     python -c "import yaml; d = yaml.safe_load(open('src/tumblenav/scenarios/chang2021.yaml')); \
         del d['sensor']['images']; d['name'] = 'chang2021_points59'; \
         yaml.safe_dump(d, open('/tmp/c59pt.yaml', 'w'), sort_keys=False)"
-    cp src/tumblenav/estimators/chang2021/slam.py /tmp/slam_fej.py
+    git show 713e9e8:src/tumblenav/estimators/chang2021/slam.py > /tmp/slam_fej.py
     patch /tmp/slam_fej.py docs/results/consistency/prototype/chang_far_fej.patch
     python chang_far_fej.py /tmp/slam_fej.py /tmp/c59pt.yaml 0 '{"check_lag_frames": 0}' [--true-fej]
 

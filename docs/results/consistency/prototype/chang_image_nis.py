@@ -5,14 +5,15 @@ it (fifteenth session, issue 18). Two steps:
 
        python chang_image_nis.py cache CACHE_DIR 0,1,2,3
 
-2. Run ekf-pose on the cached tracks with a copy of slam.py (a patch applied to
-   src/tumblenav/estimators/chang2021/slam.py) and a tuning::
+2. Run ekf-pose on the cached tracks with a copy of slam.py as of 713e9e8 (the
+   patches are against it: the later update forms H P from 3-row feature blocks) patched,
+   and a tuning::
 
-       cp src/tumblenav/estimators/chang2021/slam.py /tmp/slam_diag.py
+       git show 713e9e8:src/tumblenav/estimators/chang2021/slam.py > /tmp/slam_diag.py
        patch /tmp/slam_diag.py chang_innovation_hook.patch      # the innovations recorded
        python chang_image_nis.py run CACHE_DIR 0,1 '{}' /tmp/slam_diag.py
 
-       cp src/tumblenav/estimators/chang2021/slam.py /tmp/slam_rate.py
+       git show 713e9e8:src/tumblenav/estimators/chang2021/slam.py > /tmp/slam_rate.py
        patch /tmp/slam_rate.py chang_slide_rate.patch           # + a slide-rate state per track
        SLIDE_RATE_PX=0.02 SLIDE_RATE_Q=0.00002 WALK_SCALE=0.3 DEPTH_FLOOR=3 \
            python chang_image_nis.py run CACHE_DIR 0,1 '{"measurement_noise_scale": 0.09}' /tmp/slam_rate.py
