@@ -125,6 +125,19 @@ def test_feature_tracks_of_sparse_sightings_are_those_of_the_full_run():
         assert np.allclose(a[ok], b[ok], rtol=1e-12, atol=0.0)
     assert np.all(np.isnan(sp.p[~sp.ok_p])) and np.all(np.isnan(sp.v[~sp.ok_v]))
     assert np.allclose(sp.V[~sp.ok_v], np.eye(3))
+    # unobserved: the covariance of a point 10 m down the rig's y axis, turned into L
+    R_CL = rot.quat_to_matrix(meas.q_CL)  # (n, 3, 3)
+    fill = np.einsum("tji,jk,tkl->til", R_CL, _fill_covariance(meas), R_CL)
+    hidden = np.argwhere(~sp.ok_p)
+    assert np.allclose(sp.P[hidden[:, 0], hidden[:, 1]], fill[hidden[:, 0]], rtol=1e-12, atol=0)
+
+
+def _fill_covariance(meas):
+    from tumblenav.estimators.chang2021.measurements import _covariance_C, pixel_variance
+
+    P, ok = _covariance_C(np.array([0.0, 10.0, 0.0]), meas.rig, pixel_variance(meas))
+    assert ok
+    return P
 
 
 def test_eq29_recovers_a_rigid_rotation():

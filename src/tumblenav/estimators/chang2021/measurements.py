@@ -157,9 +157,9 @@ def feature_tracks(meas) -> FeatureTracks:
     into the (epochs, features) arrays: an image front end creates thousands of track IDs of
     which ~100 are seen at a time (chang2021_close: 3762 IDs over 601 epochs, 2.6 % of the
     entries observed), so the dense computation spent 14.5 s of CPU (0.9 s now) of a 37.6 s
-    ekf-pose run on entries nobody reads. Unobserved entries hold what they held before: position and velocity NaN,
-    the position covariance that of a point 10 m down the rig's y axis turned into L, the
-    velocity covariance the identity. NaN never leaks into ``ok``."""
+    ekf-pose run on entries nobody reads. Unobserved entries hold: position and velocity NaN, the position
+    covariance that of a point 10 m down the rig's y axis turned into L, the velocity
+    covariance the identity (as the dense version held them, the covariance to rounding). NaN never leaks into ``ok``."""
     rig = meas.rig
     uv = np.asarray(meas.uv, dtype=float)  # (n, 2, N, 2)
     n, _, N, _ = uv.shape

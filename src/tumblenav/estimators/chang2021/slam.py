@@ -610,7 +610,8 @@ class StateSteps(TrackSteps):
             rows = np.arange(3 * m).reshape(m, 3)
             H[rows[:, :, None], fcols[:, None, :]] = R_LT
             # H P and H P H^T from H's blocks (pose columns, one R_LThat per feature; the
-            # features fill P from NA on): the dense products cost ~3m D^2 each
+            # features fill P from NA on, H is zero in the inertia columns): the dense
+            # products cost 3m D^2 and 9m^2 D
             HP = H[:, :NP] @ P[:NP, :] + np.einsum(
                 "ij,mjd->mid", R_LT, P[NA:].reshape(m, 3, D)
             ).reshape(3 * m, D)
@@ -638,8 +639,12 @@ class StateSteps(TrackSteps):
                 Sk = S_all[np.ix_(r_ok, r_ok)] + Rk
                 L = np.linalg.cholesky(Sk)
                 Kt = solve_triangular(  # S^-1 H P = K^T
-                    L, solve_triangular(L, HP[r_ok], lower=True), lower=True, trans="T"
-                )
+                    L,
+                    solve_triangular(L, HP[r_ok], lower=True, check_finite=False),
+                    lower=True,
+                    trans="T",
+                    check_finite=False,
+                )  # check_finite off: a non-finite state ends as diverged below, not in a raise
                 K = Kt.T
                 A = np.eye(D) - K @ Hk
                 P = A @ P @ A.T + K @ Rk @ K.T  # Joseph form
@@ -649,7 +654,7 @@ class StateSteps(TrackSteps):
                 if tun.inertia == "estimated":
                     j = inertia_params(inertia_of(j + dx[_J]))
                 s_map[:, :3] += dx[NA:].reshape(m, 3)
-                w = solve_triangular(L, nuk, lower=True)
+                w = solve_triangular(L, nuk, lower=True, check_finite=False)
                 nis, dof = float(w @ w), len(nuk)
                 # rejected features leave the state (suspect tracks)
                 P, s_map = _keep(P, s_map, ok)
