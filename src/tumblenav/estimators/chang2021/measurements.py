@@ -156,8 +156,8 @@ def feature_tracks(meas) -> FeatureTracks:
     (module docstring). Computed at the observed (epoch, feature) entries only and scattered
     into the (epochs, features) arrays: an image front end creates thousands of track IDs of
     which ~100 are seen at a time (chang2021_close: 3762 IDs over 601 epochs, 2.6 % of the
-    entries observed), so the dense computation spent 14.5 s of CPU (0.9 s now) of a 37.6 s
-    ekf-pose run on entries nobody reads. Unobserved entries hold: position and velocity NaN, the position
+    entries observed), so the dense computation spent 12.6 of ekf-pose's 36.2 s under cProfile
+    on entries nobody reads (1.6 s now; benchmarks/chang2021_estimator_speed.py --profile). Unobserved entries hold: position and velocity NaN, the position
     covariance that of a point 10 m down the rig's y axis turned into L, the velocity
     covariance the identity (as the dense version held them, the covariance to rounding). NaN never leaks into ``ok``."""
     rig = meas.rig
@@ -169,8 +169,7 @@ def feature_tracks(meas) -> FeatureTracks:
     R_LC = np.swapaxes(rot.quat_to_matrix(meas.q_CL), -1, -2)  # (n, 3, 3)
     fill = np.array([0.0, 10.0, 0.0])  # a safe point for the covariance of unobserved entries
     P_fill, _ = _covariance_C(fill, rig, s2)
-    P_L = np.broadcast_to(R_LC @ P_fill @ np.swapaxes(R_LC, -1, -2), (N, n, 3, 3))
-    P_L = np.ascontiguousarray(np.swapaxes(P_L, 0, 1))  # (n, N, 3, 3)
+    P_L = np.repeat((R_LC @ P_fill @ np.swapaxes(R_LC, -1, -2))[:, None], N, axis=1)  # (n, N, 3, 3)
     p_L = np.full((n, N, 3), np.nan)
     ok_p = np.zeros((n, N), bool)
     p_Cs = np.tile(fill, (n, N, 1))
