@@ -13,7 +13,9 @@ chang_far_fej.patch::
 ``R_LThat [s]x``) at the truth's point (a diagnostic: the truth's features in That, which is L
 at the frame epoch 0) instead of its first triangulation; the environment's FEJ_DELAY=K
 takes it from a K-frame triangulation with the filter's own poses (new tracks wait K frames),
-FEJ_REFRESH=K re-evaluates it once at the map's estimate after K frames. Prints the skipped
+FEJ_REFRESH=K re-evaluates it once at the map's estimate after K frames. ``--check`` prints
+every increment check's d^2 (``slam.increment_check``) and the 1-sigma per axis (deg) of the
+q-method increment's first-order covariance inside it. Prints the skipped
 epochs, then every ~5 s the attitude and position error against their 1-sigma and the whole
 state's NEES/dof.
 """
@@ -33,12 +35,32 @@ from tumblenav.frontends import stages
 from tumblenav.scenario import load_scenario
 from tumblenav.simulation import run_streams, simulate
 
-args = [a for a in sys.argv[1:] if a != "--true-fej"]
+args = [a for a in sys.argv[1:] if a not in ("--true-fej", "--check")]
 spec = importlib.util.spec_from_file_location("slam_copy", args[0])
 mod = importlib.util.module_from_spec(spec)
 sys.modules["slam_copy"] = mod
 spec.loader.exec_module(mod)
 c21.StateSteps = mod.StateSteps
+if "--check" in sys.argv:
+    import tumblenav.estimators.chang2021.qmethod as qm
+
+    q_cov, check = qm.q_method_covariance, mod.increment_check
+    inside = []
+
+    def q_cov_shown(*a, **kw):
+        P, H = q_cov(*a, **kw)
+        if inside:
+            print(f"  q-method increment sigma deg {np.round(np.degrees(np.sqrt(np.diag(P))), 2)}")
+        return P, H
+
+    def check_shown(tracks, a, k, *rest, **kw):
+        inside.append(1)
+        d2 = check(tracks, a, k, *rest, **kw)
+        inside.pop()
+        print(f"check epochs {a}-{k}: d2 {d2}")
+        return d2
+
+    qm.q_method_covariance, mod.increment_check = q_cov_shown, check_shown
 sc, k = load_scenario(args[1]), int(args[2])
 tun = json.loads(args[3]) if len(args) > 3 else {}
 if tun:
