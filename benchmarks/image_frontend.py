@@ -21,6 +21,7 @@ pairs of the range given by --timing-range-m, and the time spent inside the Open
 front end alone (FAST detect, calcOpticalFlowPyrLK, remap, matchTemplate).
 
 Run:  .venv/bin/python benchmarks/image_frontend.py [--pairs 120] [--ranges-m 3 6 10]
+      [--tuning '{"template_refine": false}']
 The last line reads ``frontend_ms=<per pair, 1 core> opencv_only_ms=<OpenCV calls alone>``.
 """
 
@@ -32,6 +33,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from typing import Any  # noqa: E402
@@ -240,6 +242,7 @@ def main() -> None:
     ap.add_argument("--lk-refine", action="store_true")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--timing-only", action="store_true", help="skip the accuracy runs")
+    ap.add_argument("--tuning", default="{}", help="JSON of ImageFrontEndTuning fields")
     args = ap.parse_args()
     rig = make_rig(args.preset)
     kw: dict[str, Any] = {}
@@ -247,7 +250,7 @@ def main() -> None:
         kw["response"] = args.response
     if args.lk_refine:
         kw["lk_refine"] = True
-    tuning = ImageFrontEndTuning(**kw)
+    tuning = ImageFrontEndTuning(**{**kw, **json.loads(args.tuning)})
     w, h = rig.left.resolution_px
     print(f"rig preset {args.preset}: {w}x{h} f={rig.left.focal_px} px, b={rig.baseline_m} m")
     print(f"tuning: {tuning.model_dump()}")

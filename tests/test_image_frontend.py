@@ -31,6 +31,7 @@ from tumblenav.frontends.stereo_images.detection import (
     sad_response,
 )
 from tumblenav.frontends.stereo_images.matching import parabola_peak, sample_patches
+from tumblenav.frontends.stereo_images.refine import refine_affine, template_at
 from tumblenav.frontends.triangulation import triangulate_two_ray
 from tumblenav.measurements.stereo import StereoMeasurements
 from tumblenav.sensors.stereo import convergent_rig, parallel_rig, project
@@ -312,6 +313,63 @@ def test_forward_backward_rejects_a_corrupted_track():
     assert ok.stats.fb_rejected == 0 and ok.stats.matched == 40
 
 
+def _aged_errors(template_refine: bool, affine_match_refine: bool, n: int = 40):
+    """Left pixels of the tracks alive from the first frame after ``n`` frames of a slanted
+    plane turning 0.7 deg per frame (mostly about the line of sight), against the projection
+    of the surface point each started on; and every right pixel against its correspondence."""
+    rig = _rigs()["convergent"]
+    plane = _plane()
+    tu = ImageFrontEndTuning(
+        n_min=60, n_max=60, max_age_frames=100, template_refine=template_refine,
+        affine_match_refine=affine_match_refine,
+    )  # fmt: skip
+    tracker = ImageTracker(rig, tu)
+    fr = tracker.step(*_pair(rig, plane))
+    a, b = _material_points(rig, plane, fr.uv[0])
+    ids0 = fr.ids
+    for _ in range(n):
+        plane = plane.moved([0.0, 0.012, 0.006], [0.004, 0.0, 0.002])
+        fr = tracker.step(*_pair(rig, plane))
+    alive = np.isin(fr.ids, ids0)
+    uv_true, _ = project(
+        rig, plane.point(*(c[np.searchsorted(ids0, fr.ids[alive])] for c in (a, b)))
+    )
+    _, uv_r, _ = _truth(rig, plane, fr.uv[0])
+    return np.hypot(*(fr.uv[0, alive] - uv_true[0]).T), np.hypot(*(fr.uv[1] - uv_r).T)
+
+
+def test_template_refinement_keeps_a_track_on_its_surface_point():
+    # LK frame to frame follows the turning patch's texture and slides (0.46 px median after
+    # 40 frames here); the affine warp of the first-sighting patch stays on the point (0.02)
+    slid, _ = _aged_errors(False, True)
+    held, _ = _aged_errors(True, True)
+    assert len(held) >= 45 and len(slid) >= 45
+    assert np.median(slid) > 0.3
+    assert np.median(held) < 0.05 and np.percentile(held, 90) < 0.1
+
+
+def test_affine_match_refinement_removes_the_slant_bias():
+    # the slanted plane's NCC match is off along the epipolar line (0.10 px median); the left
+    # patch warped into the right image is not (0.02)
+    _, ncc = _aged_errors(True, False)
+    _, affine = _aged_errors(True, True)
+    assert np.median(ncc) > 0.07
+    assert np.median(affine) < 0.04 and np.percentile(affine, 90) < 0.08
+
+
+def test_affine_refinement_refuses_another_patch():
+    rng = np.random.default_rng(3)
+    img = _render(_rigs()["parallel"], _plane(), 0)
+    uv = np.array([[100.5, 100.5], [200.5, 120.5]])
+    tmpl = template_at(img, uv, 15)
+    same = refine_affine(tmpl, img, uv + [0.4, -0.3], np.tile(np.eye(2), (2, 1, 1)), 0.7, 2.0)
+    assert same.ok.all() and np.abs(same.uv - uv).max() < 0.05
+    noise = rng.uniform(0, 255, tmpl.shape).astype(np.float32)
+    other = refine_affine(noise, img, uv, np.tile(np.eye(2), (2, 1, 1)), 0.7, 2.0)
+    assert not other.ok.any()
+    np.testing.assert_array_equal(other.uv, uv)
+
+
 def _sequence(rig, n, step=([0.0, 0.01, 0.004], [0.01, 0.0, 0.005]), plane=None):
     plane = plane or _plane()
     for _ in range(n):
@@ -462,8 +520,16 @@ def test_track_images_gives_stereo_measurements():
     ds = meas.to_dataset("test")  # round trip through the file format
     back = StereoMeasurements.from_dataset(ds)
     assert np.array_equal(back.observed, meas.observed)
-    # the front end states its tracks' slide; the file keeps it
-    assert back.slide_px2_per_frame == meas.slide_px2_per_frame > 0.0
+    # the front end states its tracks' slide (none: the refinement holds them) and their noise
+    # after the first sighting; the file keeps both
+    assert back.slide_px2_per_frame == meas.slide_px2_per_frame == 0.0
+    assert back.track_noise_px == meas.track_noise_px == 0.25
+    lk, _ = track_images(
+        iter(frames), t, rig, q, q, 0.5,
+        ImageFrontEndTuning(n_min=40, n_max=40, max_age_frames=3, template_refine=False),
+    )  # fmt: skip
+    back = StereoMeasurements.from_dataset(lk.to_dataset("test"))
+    assert back.slide_px2_per_frame == 0.006 and back.track_noise_px is None
     with pytest.raises(InputError):
         track_images(iter(frames[:5]), t, rig, q, q, 0.5)
     with pytest.raises(InputError):

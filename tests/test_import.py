@@ -23,7 +23,7 @@ from tumblenav.importers import import_measurements
 from tumblenav.importers.calibration import R_TN_CV, load_yaml, stereo_calibration
 from tumblenav.importers.clouds import read_cloud, write_pcd, write_ply
 from tumblenav.importers.export import export_run, stereo_calibration_keys
-from tumblenav.measurements import StereoImageMeasurements
+from tumblenav.measurements import StereoImageMeasurements, StereoMeasurements
 from tumblenav.scenario import load_scenario, scenario_to_yaml
 from tumblenav.simulation import simulate
 
@@ -412,6 +412,10 @@ BAD = {
         lambda d: _tracks(d, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", slide_px2_per_frame=-0.01),
         ["calibration.yaml", "slide_px2_per_frame must be >= 0"],
     ),
+    "zero track noise": (
+        lambda d: _tracks(d, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", track_noise_px=0),
+        ["calibration.yaml", "track_noise_px must be > 0"],
+    ),
     "empty cloud": (lambda d: _clouds(d, empty=True), ["b.pcd", "empty point cloud", "row 3"]),
     "duplicate epoch": (lambda d: _clouds(d, dup=True), ["clouds.csv", "row 3", "duplicate"]),
     "image size": (
@@ -462,6 +466,21 @@ def test_tracks_state_their_slide(tmp_path: Path, capsys):
     _write_cal(tmp_path)
     assert _cli(["import", kind, str(path), "-o", str(tmp_path / "b")], capsys)[0] == 0
     assert io.read_netcdf(tmp_path / "b" / "measurements.nc").attrs["slide_px2_per_frame"] == 0.0
+
+
+def test_tracks_state_their_tracked_noise(tmp_path: Path, capsys):
+    """track_noise_px in the calibration reaches measurements.nc and the tracks (noise_px's
+    value when absent, which reads back as None: every sighting at noise_px)."""
+    kind, path = _tracks(tmp_path, _OK + "0.2,1,10.0,10.0,5.0,10.0\n", track_noise_px=0.15)
+    assert _cli(["import", kind, str(path), "-o", str(tmp_path / "a")], capsys)[0] == 0
+    ds = io.read_netcdf(tmp_path / "a" / "measurements.nc")
+    assert ds.attrs["track_noise_px"] == 0.15
+    assert StereoMeasurements.from_dataset(ds).track_noise_px == 0.15
+    _write_cal(tmp_path)
+    assert _cli(["import", kind, str(path), "-o", str(tmp_path / "b")], capsys)[0] == 0
+    ds = io.read_netcdf(tmp_path / "b" / "measurements.nc")
+    assert ds.attrs["track_noise_px"] == ds.attrs["noise_px"]
+    assert StereoMeasurements.from_dataset(ds).track_noise_px is None
 
 
 @pytest.mark.parametrize("suffix", ["ply", "pcd"])

@@ -46,6 +46,9 @@ ATTRIBUTES: dict[str, str] = {
     "slide_px2_per_frame": "how fast a track slides over the surface, as a random walk across "
     "the line of sight (px^2 per frame, each of u and v; 0: tracks that stay on their points); "
     "ekf-pose lets its map points walk by it",
+    "track_noise_px": "1-sigma noise (px, each of u and v) of a track's sightings after its "
+    "first (equal to `noise_px` unless the tracker states it apart, as the image front end's "
+    "affine refinement does); ekf-pose weights its updates by it",
     "camera_model": "the projection that gives `uv` from points in the camera frames",
     "sensor": "the sensor and its boresight",
     "fov_rad": "square field of view (rad)",

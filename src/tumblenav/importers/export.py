@@ -139,6 +139,7 @@ def export_tracks(
         **stereo_calibration_keys(meas.rig, camera_axes, pixel_origin),
         "noise_px": float(meas.noise_px),
         **({"slide_px2_per_frame": meas.slide_px2_per_frame} if meas.slide_px2_per_frame else {}),
+        **({} if meas.track_noise_px is None else {"track_noise_px": meas.track_noise_px}),
         "one_camera_sightings": "keep",
         "chaser": _chaser_keys(scenario, folder, meas.t, q_C0L, meas.q_LI),
     }

@@ -182,6 +182,11 @@ def tracks_measurements(
     slide_px2 = _number(cfg, "slide_px2_per_frame", where, 0.0)  # absent: tracks that stay
     if slide_px2 < 0:
         raise InputError(f"slide_px2_per_frame must be >= 0 px^2 per frame, got {slide_px2}", where)
+    track_noise: float | None = None  # absent: every sighting at noise_px
+    if cfg.get("track_noise_px") is not None:
+        track_noise = _number(cfg, "track_noise_px", where, 0.0)
+        if not (np.isfinite(track_noise) and track_noise > 0):
+            raise InputError(f"track_noise_px must be > 0 px, got {cfg['track_noise_px']}", where)
     ctx = load_context(cfg, where, Path(path).parent, t, cal.axes, t_offset)
     R = cal.R_CC0
     if np.array_equal(R, np.eye(3)):
@@ -197,5 +202,6 @@ def tracks_measurements(
         rig=cal.rig,
         noise_px=noise_px,
         slide_px2_per_frame=slide_px2,
+        track_noise_px=track_noise,
     )
     return meas, cal, table.labels, warnings, ctx, t_offset

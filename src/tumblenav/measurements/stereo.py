@@ -28,6 +28,11 @@ class StereoMeasurements:
         corners). A tracker that follows a rotating patch frame to frame (LK) slides as the
         track ages; an estimator that keeps the tracks' surface points as a map (ekf-pose)
         lets each map point walk by this much per frame.
+    track_noise_px : 1-sigma noise (px, each of u and v) of a track's sightings after its
+        first, where a tracker states it apart from ``noise_px`` (None: ``noise_px`` for
+        every sighting). The image front end's affine refinement holds a tracked feature to
+        its first-sighting patch, which is more precise than a new corner's localisation and
+        first match (``noise_px``); ekf-pose weights its updates by it.
     """
 
     t: Array
@@ -38,6 +43,7 @@ class StereoMeasurements:
     rig: sensors.StereoRig
     noise_px: float
     slide_px2_per_frame: float = 0.0
+    track_noise_px: float | None = None
 
     def to_dataset(self, scenario_name: str = "") -> xr.Dataset:
         from tumblenav.io import with_coordinates
@@ -73,6 +79,9 @@ class StereoMeasurements:
                 "baseline_m": rig.baseline_m,
                 "noise_px": self.noise_px,
                 "slide_px2_per_frame": self.slide_px2_per_frame,
+                "track_noise_px": (
+                    self.noise_px if self.track_noise_px is None else self.track_noise_px
+                ),
                 "camera_model": CAMERA_MODEL,
             },
         )
@@ -90,7 +99,17 @@ class StereoMeasurements:
             rig=rig,
             noise_px=float(ds.attrs.get("noise_px", np.nan)),
             slide_px2_per_frame=float(ds.attrs.get("slide_px2_per_frame", 0.0)),
+            track_noise_px=_tracked_noise(ds.attrs),
         )
+
+
+def _tracked_noise(attrs) -> float | None:
+    """The file's ``track_noise_px``; None where it is absent (files before it) or equals
+    ``noise_px``."""
+    if "track_noise_px" not in attrs:
+        return None
+    v = float(attrs["track_noise_px"])
+    return None if v == float(attrs.get("noise_px", np.nan)) else v
 
 
 CAMERA_MODEL = (

@@ -327,6 +327,16 @@ class StateSteps(TrackSteps):
         return pixel_variance(self.meas)
 
     @functools.cached_property
+    def track_ratio(self) -> float:
+        """The tracked sightings' noise variance over the first sightings' (the tracks'
+        ``track_noise_px`` over ``noise_px``, squared; 1 where they state no tracked noise): an
+        update weights a sighting by it, the map's augmentation by the first sighting's noise
+        (tumblenav's, issue 18: the image front end's affine refinement holds a track to its
+        first-sighting patch, more precisely than a new corner is localised and matched)."""
+        tn = getattr(self.meas, "track_noise_px", None)
+        return 1.0 if tn is None else float(tn) ** 2 / self.s2
+
+    @functools.cached_property
     def slide2(self) -> float:
         """The tracks' stated slide over the surface, px^2 per frame (0 for tracks that do not
         slide, such as simulated corners)."""
@@ -599,7 +609,7 @@ class StateSteps(TrackSteps):
             if tun.noise_at == "predicted":  # not leaning to the points measured too near
                 Sig_p = point_covariance(pred, self.meas.q_CL[k], self.meas.rig, self.s2)
                 Sig = np.where(np.isfinite(Sig_p), Sig_p, Sig)
-            Sig = tun.measurement_noise_scale * Sig
+            Sig = tun.measurement_noise_scale * self.track_ratio * Sig
             fcols = NA + 3 * np.arange(m)[:, None] + np.arange(3)  # (m, 3) feature columns
             walk = self.map_walk(k, pred, R_LT)
             if walk is not None:  # the map points follow their tracks' slide (map_walk)

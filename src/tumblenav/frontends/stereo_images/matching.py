@@ -5,8 +5,10 @@ gives neither the similarity measure nor the tolerance.  Ours (tumblenav default
 silent): a ``patch_px`` square around the left pixel, sampled along the left epipolar direction,
 is compared by normalised cross-correlation (``cv2.matchTemplate``, TM_CCOEFF_NORMED) with a
 strip sampled along the right epipolar line, so that the pair is locally rectified whatever the
-rig (a toed-in rig tilts the epipolar lines).  The score peak is refined by a parabola, then
-optionally by one full-resolution LK step from the left image to the right one.
+rig (a toed-in rig tilts the epipolar lines).  The score peak is refined by a parabola, then by
+an affine ECC warp of the left patch (``affine_match_refine``, tumblenav's,
+:mod:`~tumblenav.frontends.stereo_images.refine`), optionally by one full-resolution LK step
+from the left image to the right one before that (``lk_refine``).
 
 A feature with a known depth (a tracked one) is searched ``track_search_px`` either side of the
 point its previous depth gives on the new epipolar line; a new one over the right image of its
@@ -23,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tumblenav.frontends.stereo_images.geometry import EpipolarGeometry, clip_segments
+from tumblenav.frontends.stereo_images.refine import refine_affine, template_at
 from tumblenav.frontends.stereo_images.tuning import ImageFrontEndTuning
 
 Array = NDArray[np.float64]
@@ -195,7 +198,28 @@ class StereoMatcher:
         ok = np.flatnonzero(status == MatchStatus.OK)
         if tu.lk_refine and ok.size:
             uv_r[ok] = self._refine(left, right, uv_l[ok], uv_r[ok])
+        if tu.affine_match_refine and ok.size:
+            uv_r[ok] = self._refine_affine(left, right, uv_l[ok], uv_r[ok])
         return Matches(uv_r, score, status)
+
+    def _refine_affine(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv_l: Array, uv_r: Array
+    ) -> Array:
+        """The affine ECC refinement of the matches (``affine_match_refine``,
+        :mod:`~tumblenav.frontends.stereo_images.refine`): the left patch warped into the right
+        image from the match; refused (the match kept) when it fails, scores below
+        template_min_cc, moves more than epipolar_tol_px or leaves the epipolar band."""
+        tu = self.tuning
+        res = refine_affine(
+            template_at(left, uv_l, tu.template_px),
+            right,
+            uv_r,
+            np.broadcast_to(np.eye(2), (len(uv_l), 2, 2)),
+            tu.template_min_cc,
+            tu.epipolar_tol_px,
+        )
+        good = res.ok & (self.geometry.epipolar_distance(uv_l, res.uv) <= tu.epipolar_tol_px)
+        return np.where(good[:, None], res.uv, uv_r)
 
     def _refine(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv_l: Array, uv_r: Array

@@ -134,6 +134,7 @@ def track_images(
         q_LI=q_LI,
         rig=rig,
         noise_px=float(noise_px),
-        slide_px2_per_frame=float(tuning.track_slide_px2_per_frame),
+        slide_px2_per_frame=tuning.slide_px2(),
+        track_noise_px=tuning.tracked_noise_px(),
     )
     return meas, FrontEndStats.from_frames(stats, track_length)

@@ -5,7 +5,9 @@ Per frame, in Chang 2021 Sec. 2.4's order:
 1. drop the features whose survival time (frames tracked, counting the first) would exceed
    ``max_age_frames``; track the others in the left image, frame k-1 -> k, with pyramidal LK;
    drop the lost ones and those failing the forward-backward check (tumblenav: Chang 2021
-   gives no gating);
+   gives no gating); refine each tracked pixel by an affine warp of the feature's
+   first-sighting patch and end the tracks whose refinement fails (``template_refine``,
+   tumblenav's: :mod:`~tumblenav.frontends.stereo_images.refine`);
 2. match the tracked features in the right image along the epipolar line; drop the failures (a
    feature is observed only when tracked in the left image AND matched in the right one);
 3. if fewer than ``n_min`` remain, detect FAST corners in the left image, masked in a 5 x 5
@@ -31,6 +33,7 @@ from tumblenav.errors import InputError
 from tumblenav.frontends.stereo_images.detection import CornerDetector, feature_mask, take_spaced
 from tumblenav.frontends.stereo_images.geometry import EpipolarGeometry
 from tumblenav.frontends.stereo_images.matching import MatchStatus, StereoMatcher
+from tumblenav.frontends.stereo_images.refine import refine_affine, template_at
 from tumblenav.frontends.stereo_images.tuning import DEFAULT_TUNING, ImageFrontEndTuning
 from tumblenav.sensors.stereo import StereoRig
 
@@ -48,6 +51,7 @@ class FrameStats:
     tracked: int = 0  # features LK tracked k-1 -> k (status ok, inside the image)
     lost: int = 0  # features LK lost (status 0 or left the image)
     fb_rejected: int = 0  # tracked but failing the forward-backward check
+    template_rejected: int = 0  # tracked, but the affine refinement against the first patch failed
     matched: int = 0  # tracked features matched in the right image (kept)
     epipolar_rejected: int = 0  # tracked features or new corners failing the right match
     new: int = 0  # features created (new IDs)
@@ -128,6 +132,10 @@ class ImageTracker:
         self.depth = np.zeros(0)
         self.p_inC = np.zeros((0, 3))
         self.ncc = np.zeros(0)
+        # template_refine: each feature's first-sighting patch and its affine warp's linear part
+        side = self.tuning.template_px
+        self.templates = np.zeros((0, side, side), np.float32)
+        self.lin = np.zeros((0, 2, 2))
 
     def _check(self, image: NDArray[np.uint8], name: str) -> NDArray[np.uint8]:
         a = np.asarray(image)
@@ -140,7 +148,7 @@ class ImageTracker:
         return np.ascontiguousarray(a)
 
     def _keep(self, idx: NDArray[np.intp]) -> None:
-        for name in ("ids", "uv_l", "uv_r", "age", "depth", "p_inC", "ncc"):
+        for name in ("ids", "uv_l", "uv_r", "age", "depth", "p_inC", "ncc", "templates", "lin"):
             setattr(self, name, getattr(self, name)[idx])
 
     def step(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> TrackedFrame:
@@ -235,6 +243,14 @@ class ImageTracker:
         keep = idx[fb_ok]
         self._keep(keep)
         self.uv_l = uv[keep]
+        if tu.template_refine and len(keep):
+            res = refine_affine(
+                self.templates, cur, self.uv_l, self.lin, tu.template_min_cc,
+                tu.template_max_shift_px,
+            )  # fmt: skip
+            st["template_rejected"] = int((~res.ok).sum())
+            self.uv_l, self.lin = res.uv, res.lin
+            self._keep(np.flatnonzero(res.ok))
 
     def _triangulate(self) -> None:
         p = self.geometry.triangulate(self.uv_l, self.uv_r)
@@ -290,3 +306,5 @@ class ImageTracker:
         self.p_inC = np.concatenate([self.p_inC, p])
         self.depth = np.concatenate([self.depth, self.geometry.left_depth(p)])
         self.ncc = np.concatenate([self.ncc, score])
+        self.templates = np.concatenate([self.templates, template_at(left, uv_l, tu.template_px)])
+        self.lin = np.concatenate([self.lin, np.broadcast_to(np.eye(2), (n, 2, 2))])

@@ -12,6 +12,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = ["DEFAULT_TUNING", "ImageFrontEndTuning"]
 
+LK_SLIDE_PX2_PER_FRAME = 0.006  # LK alone: track_slide_px2_per_frame's description
+REFINED_TRACK_NOISE_PX = 0.25  # the affine refinements: track_noise_px's description
+
 
 class ImageFrontEndTuning(BaseModel):
     """Settings of the stereo-image front end: FAST corners, pyramidal LK tracking of the left
@@ -155,6 +158,43 @@ class ImageFrontEndTuning(BaseModel):
         "band is ignored (the NCC match is kept). Off by default: on the synthetic planes of "
         "tests/test_image_frontend.py it doubled the median error of the convergent rig",
     )
+    # --- affine template refinement (tumblenav's, beyond Chang 2021; stereo_images.refine) ---
+    template_refine: bool = Field(
+        True,  # tumblenav's (beyond Chang 2021); measured, see the description
+        description="refine each LK-tracked left pixel by an affine ECC warp of the patch at "
+        "the feature's first sighting (never replaced, so the track does not slide over the "
+        "surface); a track whose refinement fails (no convergence, score below "
+        "template_min_cc, or a move over template_max_shift_px) ends there. Measured "
+        "(benchmarks/image_frontend.py --ranges-m 9, 130 pairs, the text rig): the left pixel "
+        "against the surface point it started on, median 0.16 / 0.18 / 0.30 / 0.53 px at age "
+        "2 / 10 / 30 / 60 frames with LK alone, 0.11 / 0.08 / 0.07 / 0.06 px refined",
+    )
+    affine_match_refine: bool = Field(
+        True,  # tumblenav's (beyond Chang 2021); measured, see the description
+        description="refine each right match by an affine ECC warp of the left patch of the "
+        "same frame (the NCC peak is biased along the epipolar line where the two views of a "
+        "slanted patch differ, the same way at every frame of a track); refused (the NCC match "
+        "kept) when it fails, scores below template_min_cc, moves more than epipolar_tol_px or "
+        "leaves the epipolar band. On chang2021_close run 0 (rendered), each track's mean "
+        "depth error against the renderer's surface point: robust sigma 1.54 -> 0.33 "
+        "px-equivalent",
+    )
+    template_px: int = Field(
+        15,  # tumblenav's: a patch large enough for six affine parameters
+        ge=5,
+        description="side (px, odd) of the patches the affine refinements warp",
+    )
+    template_min_cc: float = Field(
+        0.7,  # tumblenav's
+        gt=-1.0,
+        le=1.0,
+        description="lowest accepted ECC score (a correlation coefficient) of a refinement",
+    )
+    template_max_shift_px: float = Field(
+        2.0,  # tumblenav's
+        gt=0,
+        description="largest move (px) of a left refinement from the LK pixel",
+    )
     min_depth_m: float = Field(
         1.0,  # tumblenav default (Chang 2021 silent)
         gt=0,
@@ -174,13 +214,16 @@ class ImageFrontEndTuning(BaseModel):
         "side of where its previous depth puts it on the new epipolar line",
     )
 
-    track_slide_px2_per_frame: float = Field(
-        0.006,  # tumblenav's, measured (Chang 2021 silent); see the description
+    track_slide_px2_per_frame: float | None = Field(
+        None,  # tumblenav's, measured (Chang 2021 silent); see the description
         ge=0.0,
         description="what the front end states of its tracks' slide over the surface, as a "
         "random walk across the line of sight (px^2 per frame, each of u and v; the tracks' "
         "slide_px2_per_frame): ekf-pose lets each map point walk by it "
-        "(slam.StateSteps.map_walk). Measured on chang2021_close rendered images (5 Hz, 1 deg "
+        "(slam.StateSteps.map_walk). None (the default): 0 with template_refine (the tracks "
+        "hold their first-sighting patch and do not slide: the left pixel against the surface "
+        "point it started on stays at a median 0.05-0.11 px from age 2 to 60 frames, "
+        "benchmarks/image_frontend.py --ranges-m 9), else 0.006, measured for LK alone on chang2021_close rendered images (5 Hz, 1 deg "
         "of tumble per frame, lk_window_px 5, runs 0-1 of the campaign's seeds; each track's "
         "triangulated point in T against its first sighting, truth poses, in px of the left "
         "camera's x / z; a session script, 2026-11-25): robust sigma 0.272 / 0.138 px at age "
@@ -195,6 +238,38 @@ class ImageFrontEndTuning(BaseModel):
         "scenario's tracks against its truth. 0: the tracks are taken as white noise about "
         "fixed surface points",
     )
+    track_noise_px: float | None = Field(
+        None,  # tumblenav's, measured (Chang 2021 silent); see the description
+        gt=0.0,
+        description="what the front end states of the noise of a track's sightings after its "
+        "first (px, each of u and v; the tracks' track_noise_px; the first sighting keeps the "
+        "sensor's noise, sensor.noise). ekf-pose weights its updates by it. None (the "
+        "default): 0.25 px with template_refine and affine_match_refine, else the sensor's "
+        "noise. Measured on chang2021_close rendered images (run 0, against the renderer's "
+        "surface point under each track's first corner): robust sigma of a sighting's error "
+        "about its track's mean 0.09 / 0.06 px across the line of sight and 0.57 "
+        "px-equivalent in depth, of the tracks' means 0.07 / 0.06 / 0.33, with heavy tails "
+        "(RMS 2 px: slips, which ekf-pose's slip test re-anchors). 0.25 px is what ekf-pose "
+        "needs rather than the scatter: its NEES/dof over 20 runs (window 40-120 s) is 1.78 "
+        "at 0.18 px, where the start leaves the mass centre's error along the rotation axis "
+        "and the next seconds take it as known in 2 of the 20 runs (NEES/dof 6 and 8); at "
+        "0.25 px those two runs 2.9 and 4.2, the others 0.5-0.7 (docs/results/consistency.md, "
+        "Chang section)",
+    )
+
+    def slide_px2(self) -> float:
+        """The slide stated for the tracks (``track_slide_px2_per_frame`` or its default)."""
+        if self.track_slide_px2_per_frame is not None:
+            return float(self.track_slide_px2_per_frame)
+        return 0.0 if self.template_refine else LK_SLIDE_PX2_PER_FRAME
+
+    def tracked_noise_px(self) -> float | None:
+        """The noise stated for the tracked sightings (``track_noise_px`` or its default; None:
+        the sensor's, as for a first sighting)."""
+        if self.track_noise_px is not None:
+            return float(self.track_noise_px)
+        refined = self.template_refine and self.affine_match_refine
+        return REFINED_TRACK_NOISE_PX if refined else None
 
     @model_validator(mode="after")
     def _consistent(self) -> ImageFrontEndTuning:
@@ -204,6 +279,8 @@ class ImageFrontEndTuning(BaseModel):
             raise ValueError(f"patch_px must be odd, got {self.patch_px}")
         if self.lk_window_px % 2 == 0:
             raise ValueError(f"lk_window_px must be odd, got {self.lk_window_px}")
+        if self.template_px % 2 == 0:
+            raise ValueError(f"template_px must be odd, got {self.template_px}")
         if self.max_depth_m is not None and not self.max_depth_m > self.min_depth_m:
             raise ValueError("max_depth_m must exceed min_depth_m")
         return self
