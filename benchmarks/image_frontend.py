@@ -162,7 +162,7 @@ def accuracy(rig: StereoRig, seq: list[dict[str, Any]], tuning: ImageFrontEndTun
 class _OpenCVTimer:
     """Accumulates the wall time of the OpenCV calls the front end makes (monkeypatched)."""
 
-    NAMES = ("calcOpticalFlowPyrLK", "remap", "matchTemplate")
+    NAMES = ("calcOpticalFlowPyrLK", "remap", "matchTemplate", "findTransformECC", "getRectSubPix")
 
     def __init__(self, tracker: ImageTracker) -> None:
         self.total = 0.0

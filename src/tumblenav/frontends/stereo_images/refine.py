@@ -94,6 +94,8 @@ def refine_affine(
     lin_out = np.array(lin, float, copy=True)
     cc = np.full(m, np.nan)
     ok = np.zeros(m, bool)
+    img = image.astype(np.float32)  # once: the crops below are views of it
+    cen = np.array([c, c])
     for i in range(m):
         p = uv_pred[i] - 0.5  # OpenCV pixel
         if not np.all(np.isfinite(p)):
@@ -103,10 +105,11 @@ def refine_affine(
         x1, y1 = min(int(round(p[0])) + half + 1, w), min(int(round(p[1])) + half + 1, h)
         if x1 - x0 < side or y1 - y0 < side:
             continue
-        crop = image[y0:y1, x0:x1].astype(np.float32)
+        crop = img[y0:y1, x0:x1]
         L = lin[i]
-        t = p - L @ np.array([c, c]) - (x0, y0)
-        warp = np.hstack([L, t[:, None]]).astype(np.float32)
+        warp = np.empty((2, 3), np.float32)
+        warp[:, :2] = L
+        warp[:, 2] = p - L @ cen - (x0, y0)
         try:
             score, found = cv2.findTransformECC(
                 templates[i], crop, warp, cv2.MOTION_AFFINE, _CRITERIA, cast(MatLike, None), 1
@@ -114,7 +117,7 @@ def refine_affine(
         except cv2.error:  # ECC failed (a flat or vanished patch)
             continue
         warp = np.asarray(found, np.float32)
-        q = warp[:, :2].astype(float) @ np.array([c, c]) + warp[:, 2] + (x0, y0)
+        q = warp[:, :2].astype(float) @ cen + warp[:, 2] + (x0, y0)
         cc[i] = score
         if score < min_cc or np.hypot(*(q - p)) > max_shift_px:
             continue
