@@ -104,12 +104,12 @@ class StereoMeasurements:
 
 
 def _tracked_noise(attrs) -> float | None:
-    """The file's ``track_noise_px``; None where it is absent (files before it) or equals
-    ``noise_px``."""
+    """The file's ``track_noise_px``; None where it is absent (files before it), not a
+    number, or equals ``noise_px``."""
     if "track_noise_px" not in attrs:
         return None
     v = float(attrs["track_noise_px"])
-    return None if v == float(attrs.get("noise_px", np.nan)) else v
+    return None if not np.isfinite(v) or v == float(attrs.get("noise_px", np.nan)) else v
 
 
 CAMERA_MODEL = (

@@ -568,6 +568,8 @@ class StateSteps(TrackSteps):
             # slipped tracks are re-anchored: dropped here, re-augmented from this frame below
             kp, res = memo.resid
             e = tr.p[k, ids] - predicted_features(x, s_map[:, :3]) - res[seen]
+            # (at the first sightings' noise: the test scales by the epoch's own tracks, so the
+            # tracked noise's ratio, track_ratio, would change nothing)
             slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], tun.slip_probability)
             slips = int(slip.sum())
             if slips:

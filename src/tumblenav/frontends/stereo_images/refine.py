@@ -44,7 +44,8 @@ def template_at(image: NDArray[np.uint8], uv: Array, side: int) -> NDArray[np.fl
     (m, 2), bilinear."""
     out = np.empty((len(uv), side, side), np.float32)
     for i, (u, v) in enumerate(np.asarray(uv, float)):
-        out[i] = cv2.getRectSubPix(image, (side, side), (u - 0.5, v - 0.5))
+        # float output: a uint8 patch would round the bilinear grey levels to integers
+        out[i] = cv2.getRectSubPix(image, (side, side), (u - 0.5, v - 0.5), patchType=cv2.CV_32F)
     return out
 
 
@@ -88,7 +89,9 @@ def refine_affine(
     m = len(uv_pred)
     side = templates.shape[-1]
     c = (side - 1) / 2.0
-    half = side // 2 + int(np.ceil(max_shift_px)) + 4  # the crop holds any accepted warp
+    # the crop holds any accepted warp: the template's corners turned and scaled by the warp
+    # (its rows' absolute sums) plus the shift allowed, and a margin for ECC's gradients
+    reach = c * np.abs(np.asarray(lin, float)).sum(axis=-1).max(axis=-1) if m else np.zeros(0)
     h, w = image.shape
     uv = np.array(uv_pred, float, copy=True)
     lin_out = np.array(lin, float, copy=True)
@@ -98,8 +101,9 @@ def refine_affine(
     cen = np.array([c, c])
     for i in range(m):
         p = uv_pred[i] - 0.5  # OpenCV pixel
-        if not np.all(np.isfinite(p)):
+        if not (np.all(np.isfinite(p)) and np.isfinite(reach[i])):
             continue
+        half = int(np.ceil(reach[i] + max_shift_px)) + 4
         # the crop, clipped to the image (ECC masks what a warp takes outside it)
         x0, y0 = max(int(round(p[0])) - half, 0), max(int(round(p[1])) - half, 0)
         x1, y1 = min(int(round(p[0])) + half + 1, w), min(int(round(p[1])) + half + 1, h)

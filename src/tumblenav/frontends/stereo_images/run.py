@@ -22,7 +22,7 @@ __all__ = ["FrontEndStats", "track_images"]
 @dataclass(frozen=True)
 class FrontEndStats:
     """Per-epoch counts of the image front end: one (n,) int64 array per :class:`FrameStats`
-    field (``detected``, ``tracked``, ``lost``, ``fb_rejected``, ``matched``,
+    field (``detected``, ``tracked``, ``lost``, ``fb_rejected``, ``template_rejected``, ``matched``,
     ``epipolar_rejected``, ``new``, ``aged``, ``removed``, ``features``), plus ``track_length``
     (the number of epochs each feature ID was observed, (N,))."""
 
@@ -57,6 +57,15 @@ class FrontEndStats:
             "track_length_median": float(np.median(tl)) if len(tl) else 0.0,
             "track_length_max": int(tl.max()) if len(tl) else 0,
         }
+
+
+def _tracked_noise(tuning: ImageFrontEndTuning, noise_px: float) -> float | None:
+    """The tracked sightings' stated noise: the tuning's; its default never above the
+    first sightings' (``noise_px``: a tracked feature is held at least as well as it was found)."""
+    tn = tuning.tracked_noise_px()
+    if tuning.track_noise_px is None and tn is not None and not tn < noise_px:
+        return None
+    return tn
 
 
 def track_images(
@@ -135,6 +144,6 @@ def track_images(
         rig=rig,
         noise_px=float(noise_px),
         slide_px2_per_frame=tuning.slide_px2(),
-        track_noise_px=tuning.tracked_noise_px(),
+        track_noise_px=_tracked_noise(tuning, float(noise_px)),
     )
     return meas, FrontEndStats.from_frames(stats, track_length)

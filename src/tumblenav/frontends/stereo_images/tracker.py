@@ -248,9 +248,13 @@ class ImageTracker:
                 self.templates, cur, self.uv_l, self.lin, tu.template_min_cc,
                 tu.template_max_shift_px,
             )  # fmt: skip
-            st["template_rejected"] = int((~res.ok).sum())
+            h, w = self.shape
+            mg, ref = self._margin, res.uv  # a refined pixel must keep the patch inside too
+            inside = (ref[:, 0] >= mg) & (ref[:, 0] <= w - mg) & (ref[:, 1] >= mg)
+            ok = res.ok & inside & (ref[:, 1] <= h - mg)
+            st["template_rejected"] = int((~ok).sum())
             self.uv_l, self.lin = res.uv, res.lin
-            self._keep(np.flatnonzero(res.ok))
+            self._keep(np.flatnonzero(ok))
 
     def _triangulate(self) -> None:
         p = self.geometry.triangulate(self.uv_l, self.uv_r)

@@ -176,7 +176,7 @@ class ImageFrontEndTuning(BaseModel):
         "slanted patch differ, the same way at every frame of a track); refused (the NCC match "
         "kept) when it fails, scores below template_min_cc, moves more than epipolar_tol_px or "
         "leaves the epipolar band. On chang2021_close run 0 (rendered), each track's mean "
-        "depth error against the renderer's surface point: robust sigma 1.54 -> 0.33 "
+        "depth error against the renderer's surface point: robust sigma 1.54 -> 0.32 "
         "px-equivalent",
     )
     template_px: int = Field(
@@ -244,11 +244,11 @@ class ImageFrontEndTuning(BaseModel):
         description="what the front end states of the noise of a track's sightings after its "
         "first (px, each of u and v; the tracks' track_noise_px; the first sighting keeps the "
         "sensor's noise, sensor.noise). ekf-pose weights its updates by it. None (the "
-        "default): 0.25 px with template_refine and affine_match_refine, else the sensor's "
-        "noise. Measured on chang2021_close rendered images (run 0, against the renderer's "
+        "default): 0.25 px with template_refine and affine_match_refine (the sensor's noise "
+        "where that is smaller), else the sensor's noise. Measured on chang2021_close rendered images (run 0, against the renderer's "
         "surface point under each track's first corner): robust sigma of a sighting's error "
-        "about its track's mean 0.09 / 0.06 px across the line of sight and 0.57 "
-        "px-equivalent in depth, of the tracks' means 0.07 / 0.06 / 0.33, with heavy tails "
+        "about its track's mean 0.09 / 0.06 px across the line of sight and 0.54 "
+        "px-equivalent in depth, of the tracks' means 0.07 / 0.07 / 0.32, with heavy tails "
         "(RMS 2 px: slips, which ekf-pose's slip test re-anchors). 0.25 px is what ekf-pose "
         "needs rather than the scatter: its NEES/dof over 20 runs (window 40-120 s) is 1.78 "
         "at 0.18 px, where the start leaves the mass centre's error along the rotation axis "
