@@ -167,7 +167,7 @@ class ImageFrontEndTuning(BaseModel):
         "template_min_cc, or a move over template_max_shift_px) ends there. Measured "
         "(benchmarks/image_frontend.py --ranges-m 9, 130 pairs, the text rig): the left pixel "
         "against the surface point it started on, median 0.16 / 0.18 / 0.30 / 0.53 px at age "
-        "2 / 10 / 30 / 60 frames with LK alone, 0.11 / 0.08 / 0.07 / 0.06 px refined",
+        "2 / 10 / 30 / 60 frames with LK alone, 0.11 / 0.07 / 0.06 / 0.05 px refined",
     )
     affine_match_refine: bool = Field(
         True,  # tumblenav's (beyond Chang 2021); measured, see the description
