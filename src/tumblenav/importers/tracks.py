@@ -184,8 +184,8 @@ def tracks_measurements(
         raise InputError(f"slide_px2_per_frame must be >= 0 px^2 per frame, got {slide_px2}", where)
     track_noise: float | None = None  # absent: every sighting at noise_px
     if cfg.get("track_noise_px") is not None:
-        track_noise = _number(cfg, "track_noise_px", where, 0.0)
-        if not (np.isfinite(track_noise) and track_noise > 0):
+        track_noise = _number(cfg, "track_noise_px", where)  # a finite number, or InputError
+        if not track_noise > 0:
             raise InputError(f"track_noise_px must be > 0 px, got {cfg['track_noise_px']}", where)
     ctx = load_context(cfg, where, Path(path).parent, t, cal.axes, t_offset)
     R = cal.R_CC0

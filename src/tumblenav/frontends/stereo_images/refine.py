@@ -97,7 +97,6 @@ def refine_affine(
     lin_out = np.array(lin, float, copy=True)
     cc = np.full(m, np.nan)
     ok = np.zeros(m, bool)
-    img = image.astype(np.float32)  # once: the crops below are views of it
     cen = np.array([c, c])
     for i in range(m):
         p = uv_pred[i] - 0.5  # OpenCV pixel
@@ -109,7 +108,8 @@ def refine_affine(
         x1, y1 = min(int(round(p[0])) + half + 1, w), min(int(round(p[1])) + half + 1, h)
         if x1 - x0 < side or y1 - y0 < side:
             continue
-        crop = img[y0:y1, x0:x1]
+        crop = image[y0:y1, x0:x1].astype(np.float32)  # the crop alone: the matcher calls
+        # this several times a frame on the same image (tracked features, each batch of new ones)
         L = lin[i]
         warp = np.empty((2, 3), np.float32)
         warp[:, :2] = L

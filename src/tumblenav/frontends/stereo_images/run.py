@@ -59,15 +59,6 @@ class FrontEndStats:
         }
 
 
-def _tracked_noise(tuning: ImageFrontEndTuning, noise_px: float) -> float | None:
-    """The tracked sightings' stated noise: the tuning's; its default never above the
-    first sightings' (``noise_px``: a tracked feature is held at least as well as it was found)."""
-    tn = tuning.tracked_noise_px()
-    if tuning.track_noise_px is None and tn is not None and not tn < noise_px:
-        return None
-    return tn
-
-
 def track_images(
     frames: Iterable[tuple[NDArray[np.uint8], NDArray[np.uint8]]],
     t: Array,
@@ -144,6 +135,6 @@ def track_images(
         rig=rig,
         noise_px=float(noise_px),
         slide_px2_per_frame=tuning.slide_px2(),
-        track_noise_px=_tracked_noise(tuning, float(noise_px)),
+        track_noise_px=tuning.tracked_noise_px(float(noise_px)),
     )
     return meas, FrontEndStats.from_frames(stats, track_length)

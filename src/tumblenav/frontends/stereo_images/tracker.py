@@ -219,10 +219,7 @@ class ImageTracker:
         )
         p1, s1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, cast(MatLike, None), **kw)
         uv = p1.reshape(-1, 2).astype(float) + 0.5
-        h, w = self.shape
-        mg = self._margin
-        ok = (s1.ravel() == 1) & np.all(np.isfinite(uv), axis=1)
-        ok &= (uv[:, 0] >= mg) & (uv[:, 0] <= w - mg) & (uv[:, 1] >= mg) & (uv[:, 1] <= h - mg)
+        ok = (s1.ravel() == 1) & np.all(np.isfinite(uv), axis=1) & self._inside(uv)
         st["lost"] = int((~ok).sum())
         idx = np.flatnonzero(ok)
         fb_ok = np.zeros(0, dtype=bool)
@@ -248,13 +245,16 @@ class ImageTracker:
                 self.templates, cur, self.uv_l, self.lin, tu.template_min_cc,
                 tu.template_max_shift_px,
             )  # fmt: skip
-            h, w = self.shape
-            mg, ref = self._margin, res.uv  # a refined pixel must keep the patch inside too
-            inside = (ref[:, 0] >= mg) & (ref[:, 0] <= w - mg) & (ref[:, 1] >= mg)
-            ok = res.ok & inside & (ref[:, 1] <= h - mg)
+            ok = res.ok & self._inside(res.uv)  # a refined pixel must keep the patch inside too
             st["template_rejected"] = int((~ok).sum())
             self.uv_l, self.lin = res.uv, res.lin
             self._keep(np.flatnonzero(ok))
+
+    def _inside(self, uv: Array) -> NDArray[np.bool_]:
+        """Whether each pixel keeps a patch inside the image (``_margin`` from every edge)."""
+        h, w = self.shape
+        mg = self._margin
+        return (uv[:, 0] >= mg) & (uv[:, 0] <= w - mg) & (uv[:, 1] >= mg) & (uv[:, 1] <= h - mg)
 
     def _triangulate(self) -> None:
         p = self.geometry.triangulate(self.uv_l, self.uv_r)

@@ -263,13 +263,15 @@ class ImageFrontEndTuning(BaseModel):
             return float(self.track_slide_px2_per_frame)
         return 0.0 if self.template_refine else LK_SLIDE_PX2_PER_FRAME
 
-    def tracked_noise_px(self) -> float | None:
-        """The noise stated for the tracked sightings (``track_noise_px`` or its default; None:
-        the sensor's, as for a first sighting)."""
+    def tracked_noise_px(self, first_px: float) -> float | None:
+        """The noise stated for the tracked sightings: ``track_noise_px``, or by default
+        REFINED_TRACK_NOISE_PX with both refinements where that is below the first sightings'
+        ``first_px`` (a tracked feature is held at least as well as it was found); None: the
+        first sightings' noise."""
         if self.track_noise_px is not None:
             return float(self.track_noise_px)
         refined = self.template_refine and self.affine_match_refine
-        return REFINED_TRACK_NOISE_PX if refined else None
+        return REFINED_TRACK_NOISE_PX if refined and REFINED_TRACK_NOISE_PX < first_px else None
 
     @model_validator(mode="after")
     def _consistent(self) -> ImageFrontEndTuning:
