@@ -17,12 +17,19 @@ pixel, where the four neighbours agree to 1 %):
                    on (px), at track ages 10, 30, 60, 100 (LK drift: what limits the age cap);
   track length, features held per frame.
 Speed (one core: cv2.setNumThreads(1)): wall time of ImageTracker.step per pair over >= 100
-pairs of the range given by --timing-range-m, and the time spent inside the OpenCV calls of the
-front end alone (FAST detect, calcOpticalFlowPyrLK, remap, matchTemplate).
+pairs of the range given by --timing-range-m, and, in a second pass, the time spent inside the
+compiled calls the front end makes, each wrapped by a timer:
+  OpenCV calls   -- FAST detect, calcOpticalFlowPyrLK, remap, matchTemplate, getRectSubPix
+                    (and findTransformECC, which the front end no longer calls: the affine
+                    refinement's ECC was OpenCV's until it moved to the compiled kernel below);
+  ECC kernel     -- stereo_images.ecc_kernel.ecc_affine (numba), the affine refinements' ECC
+                    for all the features of one refine_affine call.
+What lies outside both is Python (numpy glue, the per-feature loops that remain).
 
 Run:  .venv/bin/python benchmarks/image_frontend.py [--pairs 120] [--ranges-m 3 6 10]
       [--tuning '{"template_refine": false}']
-The last line reads ``frontend_ms=<per pair, 1 core> opencv_only_ms=<OpenCV calls alone>``.
+The last line reads ``frontend_ms=<per pair, 1 core> opencv_only_ms=<OpenCV calls alone>
+ecc_kernel_ms=<the compiled ECC alone>``.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from tumblenav.frontends.stereo_images import (  # noqa: E402
     ImageFrontEndTuning,
     ImageTracker,
 )
+from tumblenav.frontends.stereo_images import refine as refine_module  # noqa: E402
 from tumblenav.sensors.render import RenderSettings, StereoRenderer  # noqa: E402
 from tumblenav.sensors.stereo import StereoRig, chang2021_rig, convergent_rig  # noqa: E402
 from tumblenav.target_model import procedural_satellite  # noqa: E402
@@ -160,12 +168,15 @@ def accuracy(rig: StereoRig, seq: list[dict[str, Any]], tuning: ImageFrontEndTun
 
 
 class _OpenCVTimer:
-    """Accumulates the wall time of the OpenCV calls the front end makes (monkeypatched)."""
+    """Accumulates the wall time of the OpenCV calls the front end makes (``total``) and of the
+    compiled ECC kernel (``kernel``), each by name in ``by_name`` (monkeypatched)."""
 
     NAMES = ("calcOpticalFlowPyrLK", "remap", "matchTemplate", "findTransformECC", "getRectSubPix")
+    KERNEL = "ecc_affine"  # refine_affine's compiled ECC (stereo_images.ecc_kernel)
 
     def __init__(self, tracker: ImageTracker) -> None:
         self.total = 0.0
+        self.kernel = 0.0
         self.by_name: dict[str, float] = {}
         self._orig: dict[str, Callable[..., Any]] = {}
         self._tracker = tracker
@@ -177,7 +188,10 @@ class _OpenCVTimer:
                 return fn(*a, **k)
             finally:
                 dt = time.perf_counter() - t0
-                self.total += dt
+                if name == self.KERNEL:
+                    self.kernel += dt
+                else:
+                    self.total += dt
                 self.by_name[name] = self.by_name.get(name, 0.0) + dt
 
         return timed
@@ -186,6 +200,8 @@ class _OpenCVTimer:
         for n in self.NAMES:
             self._orig[n] = getattr(cv2, n)
             setattr(cv2, n, self._wrap(n, self._orig[n]))
+        self._kernel = refine_module.ecc_affine
+        refine_module.ecc_affine = self._wrap(self.KERNEL, self._kernel)
         fast = self._tracker.detector._fast
         self._detector = self._tracker.detector
         self._tracker.detector._fast = _Fast(fast, self._wrap("FAST.detect", fast.detect))  # type: ignore[assignment]
@@ -194,6 +210,7 @@ class _OpenCVTimer:
     def __exit__(self, *exc: object) -> None:
         for n, fn in self._orig.items():
             setattr(cv2, n, fn)
+        refine_module.ecc_affine = self._kernel
         self._detector._fast = self._detector._fast._inner  # type: ignore[attr-defined]
 
 
@@ -278,14 +295,19 @@ def main() -> None:
     per, feats, cvt, cpu_ms = timing(rig, seqs[args.timing_range_m], tuning, args.timing_pairs)
     n = len(per)
     cv_ms = 1e3 * cvt.total / n
+    kernel_ms = 1e3 * cvt.kernel / n
     parts = " ".join(f"{k}={1e3 * v / n:.2f}" for k, v in sorted(cvt.by_name.items()))
     print(
         f"timing at {args.timing_range_m:g} m, {n} pairs, 1 OpenCV thread: mean "
         f"{1e3 * per.mean():.2f} ms, median {1e3 * np.median(per):.2f}, p95 "
         f"{1e3 * np.percentile(per, 95):.2f}, max {1e3 * per.max():.2f}; features mean "
-        f"{feats.mean():.1f}; process CPU {cpu_ms:.2f} ms/pair; OpenCV calls (ms/pair): {parts}"
+        f"{feats.mean():.1f}; process CPU {cpu_ms:.2f} ms/pair; compiled calls (ms/pair): "
+        f"{parts}"
     )
-    print(f"frontend_ms={1e3 * per.mean():.2f} opencv_only_ms={cv_ms:.2f}")
+    print(
+        f"frontend_ms={1e3 * per.mean():.2f} opencv_only_ms={cv_ms:.2f} "
+        f"ecc_kernel_ms={kernel_ms:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ from pathlib import Path
 import tumblenav
 
 # the modules whose kernels numba caches; rotations_compiled and dynamics/compiled are inlined
-# into these (inline="always": no cache files of their own, so they must not be listed)
+# into these (inline="always": no cache files of their own, so they must not be listed).
+# frontends/stereo_images/ecc_kernel.py is cached too but not listed: only image runs compile it
+# (about 3 s), so listing it kept the message on for every points-only run (the check of
+# tests/test_cli_contract.py::test_the_compile_message_is_not_shown_once_the_kernels_are_cached)
 KERNEL_MODULES = ("estimators/hu2024/kernels.py", "frontends/_points_kernel.py")
 
 

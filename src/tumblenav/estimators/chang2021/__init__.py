@@ -116,7 +116,11 @@ class PoseEKF:
                 frame_epoch=int(s.k0),
                 R_ThatL_k0=np.eye(3).tolist(),  # That := L's orientation at frame_epoch
                 start_epoch=int(s.k),
+                start_fit=s.fit,
             )
+            if s.fit_cost is not None:  # the batch start's (slam.StateSteps._batch)
+                info["start_fit_cost_per_dof"] = float(s.fit_cost)
+                info["start_fit_noise_ratio"] = float(s.fit_noise_ratio or 0.0)
             if tun.map == "registered":
                 info["map_origin_L_k0"] = [float(v) for v in s.origin_L_k0]
             j = getattr(r.memo, "j", None)

@@ -101,6 +101,9 @@ class Start:
     origin_L_k0: Array
     omega_k0: Array | None = None  # the rate line's value at k0 (in That) and its covariance
     P_omega_k0: Array | None = None
+    fit: str = "window"  # how ekf-pose's map state took the start: replay, batch, batch+replay
+    fit_cost: float | None = None  # the batch fit's whitened cost per residual
+    fit_noise_ratio: float | None = None  # slam.StateSteps._window_noise_ratio
 
 
 def start(

@@ -42,6 +42,21 @@ observable, so nothing is measured twice.
   18): each map point walks by that much across the line of sight per frame
   (:meth:`StateSteps.map_walk`), so the map follows the LK tracks' slide over the surface
   instead of holding their later sightings to the first ones. Off for point tracks.
+* The rotation of That stays unobservable (``invariant_errors``; tumblenav's, issue 18): That
+  is defined by the start (attitude exact at k0), and no measurement can tell a rotation
+  ``dphi`` of it with the map and the rate turned along (the gauge direction, errors
+  ``dtheta = dphi``, ``domega = -[omega x] dphi``, ``dj = Gamma dphi``, ``ds_i = -[s_i x]
+  dphi``: :func:`gauge_direction`). The linearised filter must not either, or its attitude
+  grows confident while the map and the attitude drift together. Its Jacobians at the
+  current estimate see no gauge (``H N = 0``); the plain EKF loses it between steps: the
+  update moves the rate and the map, so the gauge direction the next propagation keeps is not
+  the one the update could not see, and the gap reads as attitude information (Huang,
+  Mourikis & Roumeliotis 2008 for EKF-SLAM). Here the covariance is propagated in errors in
+  which the gauge is ``dtheta`` alone (``dx' = T dx``, :func:`gauge_discretise`: exact for
+  any linearisation point, since ``F N = dN/dt``) and re-expressed at each update's estimate
+  (:func:`regauge`), as an invariant EKF does (Barrau & Bonnabel 2015, "An EKF-SLAM algorithm
+  with consistency properties", arXiv:1510.06263). The start replay keeps the first-estimate
+  Jacobians (its passes relinearise them at the previous pass's map).
 * Tracks not observed at an epoch are marginalised (their rows and columns removed); at most
   ``max_map_features`` are kept, the longest tracked first (age so far, causal).
 * Per-feature chi-square gate (``feature_gate_probability``, 3 dof): a rejected feature is
@@ -84,6 +99,7 @@ from tumblenav import rotations as rot
 from tumblenav.dynamics.integrators import discretise
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.base import Belief, Block, StateLayout, StepInfo
+from tumblenav.estimators.chang2021.batch import BatchStart, fit_window
 from tumblenav.estimators.chang2021.filter import TrackSteps
 from tumblenav.estimators.chang2021.init import Start
 from tumblenav.estimators.chang2021.measurements import (
@@ -97,6 +113,7 @@ from tumblenav.estimators.chang2021.model import (
     omega_LI_L,
     process_noise_density,
     propagate_mean,
+    rate_derivative,
 )
 
 Array = NDArray[np.float64]
@@ -176,6 +193,96 @@ def euler_inertia_jacobian(q_ThatL: Array, omega: Array, j: Array, n: float) -> 
     Ew = _J_BASIS @ w_ti  # (5, 3)
     rhs = -np.cross(w_ti, Ew) - _J_BASIS @ g  # (5, 3)
     return np.asarray(np.linalg.solve(J, rhs.T), dtype=float)
+
+
+def inertia_gauge(J: Array) -> Array:
+    """``Gamma`` (5, 3): the inertia parameters' change ``dj = Gamma dphi`` when That turns by
+    ``dphi`` (vectors in That ``v -> Exp(dphi) v``, so ``J -> J + [dphi x] J - J [dphi x]``;
+    the commutator is symmetric and traceless, a change of ``j``)."""
+    G = np.empty((NI, 3))
+    for c in range(3):
+        S = rot.skew(np.eye(3)[c])
+        D = S @ J - J @ S
+        G[:, c] = (D[0, 0], D[1, 1], D[0, 1], D[0, 2], D[1, 2])
+    return G
+
+
+def gauge_transform(omega: Array, J: Array | None) -> Array:
+    """``T`` (17, 17): pose and inertia errors ``dx`` -> gauge-aligned errors ``T dx`` in which
+    a rotation ``dphi`` of That (the map's frame, unobservable) is ``dtheta = dphi`` alone:
+    ``domega' = domega + [omega x] dtheta``, ``dj' = dj - Gamma(J) dtheta`` (``J`` None: the
+    inertia is not a state). The features' part, ``ds' = ds + [s x] dtheta``, is applied where
+    needed (module docstring, :meth:`StateSteps.gauge`)."""
+    T = np.eye(NA)
+    T[_W, _A] = rot.skew(omega)
+    if J is not None:
+        T[_J, _A] = -inertia_gauge(J)
+    return T
+
+
+def gauge_inverse(T: Array) -> Array:
+    """``T^-1`` of :func:`gauge_transform` (its off-diagonal blocks negated: they only read
+    ``dtheta``, which ``T`` leaves as it is)."""
+    return 2.0 * np.eye(NA) - T
+
+
+def gauge_discretise(
+    F: Array, Qc: Array, dt: float, rates: tuple[Array, Array, Array], J: Array | None
+) -> tuple[Array, Array]:
+    """``(Phi, Q_d)`` of the pose-and-inertia errors (17, 17) over ``dt``, discretised in the
+    gauge-aligned errors ``dx' = T dx`` (:func:`gauge_transform`) and brought back: ``F' = T F
+    T^-1 + dT/dt`` (``T`` reads the rate, whose derivative is Euler's), ``Phi = T_b^-1
+    expm(F' dt) T_a``. A rotation of That, ``dx' = (dphi, 0, ...)``, is a null vector of
+    ``F'`` at any linearisation point (``F N = dN/dt``, the dynamics' symmetry), so ``Phi``
+    takes the gauge direction at the step's start exactly to the one at its end; a plain
+    ``expm(F dt)`` (``F`` at the start) misses it by O(dt^2) a step. ``rates``: the rate at the
+    start, its derivative there, the rate at the end; ``J`` the inertia (None when it is not
+    a state). The noise drives the rate and velocity, which ``T`` leaves as they are."""
+    w_a, wdot_a, w_b = rates
+    Ta = gauge_transform(w_a, J)
+    Tdot = np.zeros((NA, NA))
+    Tdot[_W, _A] = rot.skew(wdot_a)
+    Phi_g, Qd_g = discretise(Ta @ F @ gauge_inverse(Ta) + Tdot, Qc, dt)
+    Tb_inv = gauge_inverse(gauge_transform(w_b, J))
+    return Tb_inv @ Phi_g @ Ta, Tb_inv @ Qd_g @ Tb_inv.T
+
+
+def regauge(
+    P: Array,
+    before: tuple[Array, Array, Array],
+    after: tuple[Array, Array, Array],
+    inertia_estimated: bool,
+) -> Array:
+    """The joint covariance of the errors about ``before`` (pose ``x``, inertia ``j``, map
+    ``s`` (m, 3)) re-expressed about ``after`` (an update's estimate) in the same gauge-aligned
+    errors: ``A = T(after)^-1 T(before)``, ``P -> A P A^T``; ``A`` adds ``[omega_b - omega_a
+    x] dtheta`` to the rate error, ``(Gamma(J_a) - Gamma(J_b)) dtheta`` to the inertia's and
+    ``[s_b - s_a x] dtheta`` to each feature's. The reset of an invariant EKF (Barrau &
+    Bonnabel 2015): the plain EKF's identity reset leaves the variance along the old gauge
+    direction, which the update could not change, to the new one, which it could have."""
+    (xb, jb, sb), (xa, ja, sa) = before, after
+    E = np.zeros((P.shape[0], 3))  # A = I + E [the attitude rows]
+    E[_W] = rot.skew(xb[4:7] - xa[4:7])
+    if inertia_estimated:
+        E[_J] = inertia_gauge(inertia_of(ja)) - inertia_gauge(inertia_of(jb))
+    E[NA:] = rot.skew(sb - sa).reshape(-1, 3)
+    EP = E @ P[_A, :]
+    P = P + EP + EP.T + E @ P[_A, _A] @ E.T
+    return 0.5 * (P + P.T)
+
+
+def gauge_direction(x: Array, j: Array | None, s: Array) -> Array:
+    """``N`` (17 + 3m, 3): the errors of a rotation ``dphi`` of That at the estimate (pose
+    ``x``, inertia ``j`` (None: not a state), map ``s`` (m, 3)): ``dtheta = dphi``, ``domega =
+    -[omega x] dphi``, ``dj = Gamma(J) dphi``, ``ds_i = -[s_i x] dphi`` (no measurement sees
+    it: :func:`measurement_jacobian` ``N = 0``)."""
+    N = np.zeros((NA + 3 * len(s), 3))
+    N[_A] = np.eye(3)
+    N[_W] = -rot.skew(x[4:7])
+    if j is not None:
+        N[_J] = inertia_gauge(inertia_of(j))
+    N[NA:] = -rot.skew(s).reshape(-1, 3)
+    return N
 
 
 def predicted_features(x: Array, s: Array) -> Array:
@@ -291,7 +398,11 @@ def increment_check(
     filter's, without the cross-covariance of the two epochs: larger than the truth when they
     are positively correlated, as a smoothly propagated attitude is) and ``floor_rad^2 I``.
     None when fewer than ``min_features`` features span the interval or they are collinear."""
-    from tumblenav.estimators.chang2021.qmethod import q_method, q_method_covariance
+    from tumblenav.estimators.chang2021.qmethod import (
+        epoch_attitude_sigma,
+        q_method,
+        q_method_covariance,
+    )
 
     c = np.flatnonzero(tracks.ok_p[a] & tracks.ok_p[k])
     if len(c) < min_features:
@@ -305,6 +416,19 @@ def increment_check(
     q, _ = q_method(A, B, w)  # A ~ R(q) B: R(q) = R_LThat(a) R_ThatL(k)
     R_m = rot.quat_to_matrix(q)
     P_m, _ = q_method_covariance(q, B, w, Sa + R_m @ Sk @ R_m.T)
+    # across the line of sight, at least what the two epochs' depth noise says
+    # (qmethod.epoch_attitude_sigma): the first-order covariance takes the lever arms from the
+    # noisy points and, where the depth noise is as large as the target, reads it as a larger
+    # target (2.2-8.6 deg per axis at Chang's printed 59 m against one epoch's ~15; there the
+    # check failed runs whose attitude was right: 18 of 20 point-track runs stopped as diverged
+    # with the batch start, seventeenth session)
+    los = tracks.p[a, c].mean(axis=0)
+    los = los / np.linalg.norm(los)
+    M = np.eye(3) - np.outer(los, los)
+    var_e = epoch_attitude_sigma(tracks.p[a, c], Sa) ** 2
+    var_e += epoch_attitude_sigma(tracks.p[k, c], Sk) ** 2
+    if np.isfinite(var_e):
+        P_m = P_m + max(0.0, var_e - 0.5 * float(np.trace(M @ P_m @ M))) * M
     R_LT_a = rot.quat_to_matrix(q_a).T
     D_f = R_LT_a @ rot.quat_to_matrix(q_k)  # the filter's increment
     S = P_m + R_LT_a @ (P_a + P_k) @ R_LT_a.T + floor_rad**2 * np.eye(3)
@@ -401,6 +525,8 @@ class StateSteps(TrackSteps):
         P[:, 6:12] = 0.0
         P[_R, _R] = (s.P[_R, _R].trace() / 3 + sig**2) * np.eye(3)
         P[_V, _V] = (s.P[_V, _V].trace() / 3 + (w * sig) ** 2) * np.eye(3)
+        if self.tun.start_fit == "batch":
+            return self._batch(s, x, P)
         if self.tun.start_replay:
             return self._replay(s, x, P)
         P = self._with_inertia(P)
@@ -408,7 +534,76 @@ class StateSteps(TrackSteps):
         memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
         return Belief(float(self.meas.t[k]), x, P, LAYOUT_POSE, memo), StepInfo()
 
-    def _replay(self, s: Start, x_end: Array, P_end: Array) -> tuple[Belief | None, StepInfo]:
+    def _batch(self, s: Start, x_end: Array, P_end: Array) -> tuple[Belief | None, StepInfo]:
+        """The start as a batch fit of the window (``start_fit: batch``,
+        :func:`.batch.fit_window`) from the window's rate line at k0 and its mass-centre fit
+        carried back to k0. The fit takes the window's motion as torque-free: where the
+        scenario's process noise turns the attitude over the window by less than the fit
+        resolves (:meth:`_window_noise_ratio` at most ``batch_noise_ratio``) its solution and
+        covariance are the first belief; elsewhere the replay (:meth:`_replay`, which carries
+        Q) runs from the fit's rate, mass centre and map (its first-estimate Jacobians there)
+        instead of the q-method's and the first triangulations."""
+        tt = self.meas.t
+        omega0 = s.omega_k0 if s.omega_k0 is not None else x_end[4:7]
+        rv0 = cw_stm(self.n_orbit, float(tt[s.k0] - tt[s.k])) @ x_end[7:13]
+        fit = fit_window(
+            self.tracks,
+            tt,
+            s.k0,
+            s.k,
+            omega0,
+            rv0,
+            self.n_orbit,
+            estimate_inertia=self.tun.inertia == "estimated",
+            inertia_sigma=self.tun.inertia_sigma,
+            centre_sigma=self.tun.prior_mass_centre_sigma_m,
+            noise_scale=self.tun.measurement_noise_scale * self.track_ratio,
+            first_noise_scale=1.0,
+            gate_probability=self.tun.feature_gate_probability,
+            max_features=self.tun.max_map_features,
+        )
+        if fit is None:
+            return None, StepInfo(skipped={"initialising": 1})
+        ratio, Qd = self._window_noise(fit, float(tt[s.k] - tt[s.k0]))
+        cost = fit.cost / max(fit.dof, 1)
+        if ratio <= self.tun.batch_noise_ratio:
+            # the window's process noise, which the torque-free fit leaves out (at most the
+            # fit's own variance here): the end attitude is no longer a function of the rate
+            P = fit.P.copy()
+            P[:NA, :NA] += Qd
+            if self.tun.inertia != "estimated":
+                P[_J, :] = 0.0
+                P[:, _J] = 0.0
+            s_fit = dataclasses.replace(s, fit="batch", fit_cost=cost, fit_noise_ratio=ratio)
+            memo = MapMemo(fit.ids, fit.s, fit.s.copy(), s_fit, j=fit.j)
+            return Belief(float(tt[s.k]), fit.x, P, LAYOUT_POSE, memo), StepInfo()
+        lin = np.full((self.tracks.p.shape[1], 3), np.nan)
+        lin[fit.window_ids] = fit.window_s
+        x_fit = x_end.copy()
+        x_fit[7:13] = cw_stm(self.n_orbit, float(tt[s.k] - tt[s.k0])) @ fit.rv0
+        s_fit = dataclasses.replace(
+            s, omega_k0=fit.omega0, fit="batch+replay", fit_cost=cost, fit_noise_ratio=ratio
+        )
+        return self._replay(s_fit, x_fit, P_end, lin)
+
+    def _window_noise(self, fit: BatchStart, T: float) -> tuple[float, Array]:
+        """How much the scenario's process noise moves the state over the window ``T`` (s):
+        its covariance ``Q`` (17, 17) over ``T`` at the fit's end state
+        (:func:`tumblenav.dynamics.integrators.discretise`), and against what the
+        torque-free fit resolves, the largest eigenvalue of ``P_fit^-1 Q`` on the attitude."""
+        x16 = np.concatenate([fit.x, np.zeros(3)])
+        J = inertia_of(fit.j) if self.tun.inertia == "estimated" else self.inertia
+        F = np.zeros((NA, NA))
+        F[:NP, :NP] = error_jacobian(x16, J, self.n_orbit)[:NP, :NP]
+        Qc = np.zeros((NA, NA))
+        Qc[:NP, :NP] = process_noise_density(self.rate_noise(x16, J), self.q_accel)[:NP, :NP]
+        _, Qd = discretise(F, Qc, T)
+        ev = np.linalg.eigvals(np.linalg.solve(fit.P[_A, _A], Qd[_A, _A]))
+        return float(np.max(np.real(ev))), 0.5 * (Qd + Qd.T)
+
+    def _replay(
+        self, s: Start, x_end: Array, P_end: Array, lin0: Array | None = None
+    ) -> tuple[Belief | None, StepInfo]:
         """The filter run over the start window from k0, where That is defined (attitude
         identity, exact), with the window's rate and mass-centre fit (propagated back to k0)
         as a loose prior: the start's attitude is then the filter's over the window, not the
@@ -430,6 +625,8 @@ class StateSteps(TrackSteps):
         points as well: no change (1.12 with 3 passes), not kept."""
         tt = self.meas.t
         k0, k1 = s.k0, s.k
+        if s.fit == "window":
+            s = dataclasses.replace(s, fit="replay")
         x = x_end.copy()
         x[0:4] = rot.IDENTITY
         Phi = cw_stm(self.n_orbit, float(tt[k0] - tt[k1]))
@@ -447,7 +644,7 @@ class StateSteps(TrackSteps):
         P[_V, _V] = P_end[_V, _V]
         P0 = self._with_inertia(P)
         b: Belief | None = None
-        lin = None
+        lin = lin0
         for _ in range(self.tun.start_passes):
             if b is not None:  # relinearise: the last pass's mass centre at k1, back to k0
                 x[7:13] = Phi @ b.x[7:13]
@@ -504,6 +701,15 @@ class StateSteps(TrackSteps):
         P = b.P + self.tun.prior_mass_centre_sigma_m**2 * np.outer(N, N)
         return Belief(b.t, x, P, LAYOUT_POSE, memo)
 
+    def invariant(self, memo: MapMemo, t: float) -> bool:
+        """Whether the step at time ``t`` runs in the gauge-aligned errors
+        (``invariant_errors``): after the start window only. The start replay keeps the
+        first-estimate Jacobians, which its passes relinearise at the previous pass's map (a
+        Gauss-Newton on the window that the current estimate's Jacobians cannot do: on
+        Chang's printed 59 m with point tracks, runs 0-1, the replay in the gauge-aligned
+        errors ends 5-8 deg off against 0.4-0.8 deg)."""
+        return self.tun.invariant_errors and t > float(self.meas.t[memo.start.k])
+
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t
         if dt <= 0.0:
@@ -517,8 +723,13 @@ class StateSteps(TrackSteps):
             F[_W, _J] = euler_inertia_jacobian(x16[0:4], x16[4:7], belief.memo.j, self.n_orbit)
         Qc = np.zeros((NA, NA))
         Qc[:NP, :NP] = process_noise_density(q_rate, self.q_accel)[:NP, :NP]
-        Phi, Qd = discretise(F, Qc, dt)
         x = propagate_mean(x16, dt, J, self.n_orbit)[:NX]
+        if self.invariant(belief.memo, t):
+            Jg = J if self.tun.inertia == "estimated" else None
+            wdot = rate_derivative(x16[0:4], x16[4:7], J, self.n_orbit)
+            Phi, Qd = gauge_discretise(F, Qc, dt, (x16[4:7], wdot, x[4:7]), Jg)
+        else:
+            Phi, Qd = discretise(F, Qc, dt)
         P = belief.P.copy()
         P[:NA, :] = Phi @ P[:NA, :]
         P[:, :NA] = P[:, :NA] @ Phi.T
@@ -604,7 +815,9 @@ class StateSteps(TrackSteps):
         else:
             D = P.shape[0]
             # first-estimate Jacobian (FEJ) of the attitude columns, see the module docstring
-            Hp, R_LT = measurement_jacobian(x[0:4], s_map[:, 3:] if tun.fej else s_map[:, :3])
+            inv = self.invariant(memo, float(self.meas.t[k]))
+            fej = tun.fej and not inv
+            Hp, R_LT = measurement_jacobian(x[0:4], s_map[:, 3:] if fej else s_map[:, :3])
             pred = predicted_features(x, s_map[:, :3])
             nu = tr.p[k, ids] - pred  # (m, 3)
             Sig = tr.P[k, ids]
@@ -662,10 +875,18 @@ class StateSteps(TrackSteps):
                 P = A @ P @ A.T + K @ Rk @ K.T  # Joseph form
                 P = 0.5 * (P + P.T)
                 dx = K @ nuk
+                x_prior, j_prior, s_prior = x, j, s_map[:, :3].copy()
                 x = LAYOUT_POSE.boxplus(x, dx[:NP])
                 if tun.inertia == "estimated":
                     j = inertia_params(inertia_of(j + dx[_J]))
                 s_map[:, :3] += dx[NA:].reshape(m, 3)
+                if inv:
+                    P = regauge(
+                        P,
+                        (x_prior, j_prior, s_prior),
+                        (x, j, s_map[:, :3]),
+                        tun.inertia == "estimated",
+                    )
                 w = solve_triangular(L, nuk, lower=True, check_finite=False)
                 nis, dof = float(w @ w), len(nuk)
                 # rejected features leave the state (suspect tracks)

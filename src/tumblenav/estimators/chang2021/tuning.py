@@ -44,7 +44,37 @@ class PoseTuning(BaseModel):
     fej: bool = Field(
         True,
         description="with map 'state': first-estimate Jacobians, the attitude columns of each "
-        "feature's measurement evaluated at the feature's first estimate",
+        "feature's measurement evaluated at the feature's first estimate (with "
+        "invariant_errors in the start replay only)",
+    )
+    invariant_errors: bool = Field(
+        True,
+        description="with map 'state': after the start, the rotation of That stays "
+        "unobservable to the linearised filter (tumblenav's, issue 18; see the module "
+        "docstring of tumblenav.estimators.chang2021.slam): the covariance is propagated in "
+        "errors in which that rotation is the attitude error alone, re-expressed at each "
+        "update's estimate, and the map's Jacobians are taken at the current map (fej then "
+        "applies to the start replay only). Chang's printed 59 m on point tracks, runs 0-1, "
+        "check off: NEES/dof 441 -> 10.7 (the attitude no longer drifts to 3.5 deg at a "
+        "1-sigma of 0.07 deg); without it but with the current map's Jacobians 25.7",
+    )
+    start_fit: Literal["replay", "batch"] = Field(
+        "batch",
+        description="with map 'state': how the start window becomes the first belief. "
+        "'replay': the filter run over the window start_passes times (start_replay). "
+        "'batch' (tumblenav's, issue 18): a Gauss-Newton fit of the window's torque-free "
+        "motion, mass centre and map to every sighting (a bundle adjustment; "
+        "tumblenav.estimators.chang2021.batch), its covariance the first belief's",
+    )
+    batch_noise_ratio: float = Field(
+        1.0,
+        gt=0,
+        description="with start_fit 'batch': the fit (which takes the window's motion as "
+        "torque-free) is the first belief when the scenario's process noise turns the "
+        "attitude over the window by at most this times the fit's own variance (the largest "
+        "eigenvalue of P_fit^-1 Q_window on the attitude); above it the replay runs from the "
+        "fit's solution. Measured (run 0-1): Chang's printed 59 m 0.21-0.32, chang2021_close "
+        "images 11-13, chang_range20 140-210, chang_paper 550-850",
     )
     start_replay: bool = Field(
         True,

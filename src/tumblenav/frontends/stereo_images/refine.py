@@ -13,7 +13,11 @@ translates. On a tumbling target a patch also turns and foreshortens, so
   surface point on chang2021_close, run 0).
 
 Here each LK result is refined by maximising the enhanced correlation coefficient (ECC,
-Evangelidis & Psarakis 2008, ``cv2.findTransformECC``) of an affine warp of a template:
+Evangelidis & Psarakis 2008) of an affine warp of a template, by OpenCV's algorithm
+(``cv2.findTransformECC``, modules/video/src/ecc.cpp) compiled for all the features of a call
+at once (:mod:`~tumblenav.frontends.stereo_images.ecc_kernel`: OpenCV's ECC takes one template
+per call, and its per-call overhead, not the arithmetic, had made three quarters of the front
+end's time):
 
 * left: the ``template_px`` patch at the feature's first sighting, warped by the affine map
   carried from frame to frame (the template update problem, Matthews, Ishikawa & Baker 2004:
@@ -27,12 +31,12 @@ angle changes the shading as the target turns).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import cast
 
 import cv2
 import numpy as np
-from cv2.typing import MatLike
 from numpy.typing import NDArray
+
+from tumblenav.frontends.stereo_images.ecc_kernel import ECC_OK, ecc_affine
 
 Array = NDArray[np.float64]
 
@@ -63,7 +67,8 @@ class AffineRefinement:
 # ECC's termination: 20 iterations or a change of the correlation below 1e-3. As accurate as
 # 50 and 1e-4 (benchmarks/image_frontend.py --ranges-m 9: median match error 0.055 against
 # 0.056 px, drift at 60 frames 0.05 px both) in half the time.
-_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-3)
+_MAX_ITER = 20
+_EPS = 1e-3
 
 
 def refine_affine(
@@ -76,56 +81,72 @@ def refine_affine(
 ) -> AffineRefinement:
     """Warp each template into ``image`` by the affine map of linear part ``lin`` (m, 2, 2)
     that takes the template's centre to ``uv_pred`` (m, 2, tumblenav), refine the warp by ECC
-    (``cv2.findTransformECC``, MOTION_AFFINE, on a crop around the prediction), and accept the
-    result when ECC succeeds, scores (the correlation coefficient) at least ``min_cc`` and
-    moves the centre by at most ``max_shift_px`` from ``uv_pred`` (else ``uv_pred`` and
-    ``lin`` are returned).
+    (OpenCV's ``findTransformECC``, MOTION_AFFINE, on a crop around the prediction, here
+    :func:`~tumblenav.frontends.stereo_images.ecc_kernel.ecc_affine`), and accept the result
+    when ECC succeeds, scores (the correlation coefficient) at least ``min_cc`` and moves the
+    centre by at most ``max_shift_px`` from ``uv_pred`` (else ``uv_pred`` and ``lin`` are
+    returned).
 
-    OpenCV's ECC takes one template per call, hence the loop (~0.17 ms a feature on one core).
-    A batched inverse-compositional and a batched forward-additive Gauss-Newton over all the
-    features (one ``cv2.remap`` per iteration) were tried: as accurate only with ECC's own
-    gradient and stopping rule, and then slower in numpy (66 against 50 ms per pair at 120
-    features, benchmarks/image_frontend.py)."""
+    The crop holds any accepted warp (the template's corners turned and scaled by the warp,
+    the shift allowed and 4 px for the gradients), clipped to the image; a warp that reaches
+    past it finds 0 there and the pixels it takes outside are masked, as in OpenCV.
+
+    Why a hand-written kernel: OpenCV's ECC takes one template per call, and its per-call
+    overhead with the Python loop around it (~0.13 ms a feature on one core, mostly fixed costs
+    around 225 pixels of arithmetic) made three quarters of the front end's time (33 of 44 ms
+    a pair, benchmarks/image_frontend.py; 3.2 ms with the kernel). ``ecc_affine`` runs OpenCV's
+    algorithm step by step (``gaussFiltSize`` 1, no mask) for all the features in one
+    compiled loop; it agrees with ``cv2.findTransformECC`` to rounding (float64 here, float32
+    there; ``tests/test_image_frontend.py``). A batched inverse-compositional and a batched
+    forward-additive Gauss-Newton in numpy were tried before: as accurate only with ECC's own
+    gradient and stopping rule, and then slower."""
     m = len(uv_pred)
     side = templates.shape[-1]
     c = (side - 1) / 2.0
-    # the crop holds any accepted warp: the template's corners turned and scaled by the warp
-    # (its rows' absolute sums) plus the shift allowed, and a margin for ECC's gradients
-    reach = c * np.abs(np.asarray(lin, float)).sum(axis=-1).max(axis=-1) if m else np.zeros(0)
-    h, w = image.shape
-    uv = np.array(uv_pred, float, copy=True)
-    lin_out = np.array(lin, float, copy=True)
+    cen = np.array([c, c])
+    lin_in = np.asarray(lin, float).reshape(m, 2, 2)
+    uv = np.array(uv_pred, float, copy=True).reshape(m, 2)
+    p = uv - 0.5  # OpenCV pixels
+    lin_out = lin_in.copy()
     cc = np.full(m, np.nan)
     ok = np.zeros(m, bool)
-    cen = np.array([c, c])
-    for i in range(m):
-        p = uv_pred[i] - 0.5  # OpenCV pixel
-        if not (np.all(np.isfinite(p)) and np.isfinite(reach[i])):
-            continue
-        half = int(np.ceil(reach[i] + max_shift_px)) + 4
-        # the crop, clipped to the image (ECC masks what a warp takes outside it)
-        x0, y0 = max(int(round(p[0])) - half, 0), max(int(round(p[1])) - half, 0)
-        x1, y1 = min(int(round(p[0])) + half + 1, w), min(int(round(p[1])) + half + 1, h)
-        if x1 - x0 < side or y1 - y0 < side:
-            continue
-        crop = image[y0:y1, x0:x1].astype(np.float32)  # the crop alone: the matcher calls
-        # this several times a frame on the same image (tracked features, each batch of new ones)
-        L = lin[i]
-        warp = np.empty((2, 3), np.float32)
-        warp[:, :2] = L
-        warp[:, 2] = p - L @ cen - (x0, y0)
-        try:
-            score, found = cv2.findTransformECC(
-                templates[i], crop, warp, cv2.MOTION_AFFINE, _CRITERIA, cast(MatLike, None), 1
-            )
-        except cv2.error:  # ECC failed (a flat or vanished patch)
-            continue
-        warp = np.asarray(found, np.float32)
-        q = warp[:, :2].astype(float) @ cen + warp[:, 2] + (x0, y0)
-        cc[i] = score
-        if score < min_cc or np.hypot(*(q - p)) > max_shift_px:
-            continue
-        uv[i] = q + 0.5
-        lin_out[i] = warp[:, :2]
-        ok[i] = True
+    # the crop: the template's corners turned and scaled by the warp (its rows' absolute sums)
+    # plus the shift allowed, and a margin for ECC's gradients; clipped to the image
+    reach = c * np.abs(lin_in).sum(axis=-1).max(axis=-1)
+    run = np.isfinite(p).all(axis=1) & np.isfinite(reach)
+    half = np.ceil(np.where(run, reach, 0.0) + max_shift_px).astype(np.int64) + 4
+    p_int = np.rint(np.where(run[:, None], p, 0.0)).astype(np.int64)  # round() ties to even
+    h, w = image.shape
+    boxes = np.stack(
+        [
+            np.maximum(p_int[:, 0] - half, 0),
+            np.maximum(p_int[:, 1] - half, 0),
+            np.minimum(p_int[:, 0] + half + 1, w),
+            np.minimum(p_int[:, 1] + half + 1, h),
+        ],
+        axis=1,
+    )
+    run &= (boxes[:, 2] - boxes[:, 0] >= side) & (boxes[:, 3] - boxes[:, 1] >= side)
+    idx = np.flatnonzero(run)
+    if not idx.size:
+        return AffineRefinement(uv, lin_out, cc, ok)
+    # the initial warps, template pixels -> crop pixels (float32, as OpenCV's warpMatrix)
+    warps = np.empty((idx.size, 2, 3), np.float32)
+    warps[:, :, :2] = lin_in[idx]
+    warps[:, :, 2] = p[idx] - lin_in[idx] @ cen - boxes[idx, :2]
+    found, score, status = ecc_affine(
+        np.ascontiguousarray(templates[idx], dtype=np.float32),
+        np.ascontiguousarray(image),
+        boxes[idx],
+        warps,
+        _MAX_ITER,
+        _EPS,
+    )
+    done = status == ECC_OK
+    q = found[:, :, :2].astype(float) @ cen + found[:, :, 2] + boxes[idx, :2]
+    cc[idx[done]] = score[done]
+    good = done & (score >= min_cc) & (np.hypot(*(q - p[idx]).T) <= max_shift_px)
+    uv[idx[good]] = q[good] + 0.5
+    lin_out[idx[good]] = found[good, :, :2]
+    ok[idx[good]] = True
     return AffineRefinement(uv, lin_out, cc, ok)

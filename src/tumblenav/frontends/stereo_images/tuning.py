@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 __all__ = ["DEFAULT_TUNING", "ImageFrontEndTuning"]
 
 LK_SLIDE_PX2_PER_FRAME = 0.006  # LK alone: track_slide_px2_per_frame's description
-REFINED_TRACK_NOISE_PX = 0.25  # the affine refinements: track_noise_px's description
+REFINED_TRACK_NOISE_PX = 0.15  # the affine refinements: track_noise_px's description
 
 
 class ImageFrontEndTuning(BaseModel):
@@ -244,16 +244,17 @@ class ImageFrontEndTuning(BaseModel):
         description="what the front end states of the noise of a track's sightings after its "
         "first (px, each of u and v; the tracks' track_noise_px; the first sighting keeps the "
         "sensor's noise, sensor.noise). ekf-pose weights its updates by it. None (the "
-        "default): 0.25 px with template_refine and affine_match_refine (the sensor's noise "
+        "default): 0.15 px with template_refine and affine_match_refine (the sensor's noise "
         "where that is smaller), else the sensor's noise. Measured on chang2021_close rendered images (run 0, against the renderer's "
         "surface point under each track's first corner): robust sigma of a sighting's error "
         "about its track's mean 0.09 / 0.06 px across the line of sight and 0.54 "
         "px-equivalent in depth, of the tracks' means 0.07 / 0.07 / 0.32, with heavy tails "
-        "(RMS 2 px: slips, which ekf-pose's slip test re-anchors). 0.25 px is what ekf-pose "
-        "needs rather than the scatter: its NEES/dof over 20 runs (window 40-120 s) is 1.78 "
-        "at 0.18 px, where the start leaves the mass centre's error along the rotation axis "
-        "and the next seconds take it as known in 2 of the 20 runs (NEES/dof 6 and 8); at "
-        "0.25 px those two runs 2.9 and 4.2, the others 0.5-0.7 (docs/results/consistency.md, "
+        "(RMS 2 px: slips, which ekf-pose's slip test re-anchors). 0.15 px is what ekf-pose "
+        "needs rather than the scatter: on the cached tracks of runs 0-3, 17 and 19 (window "
+        "40-120 s) with its batch start, NEES/dof 0.95 at 0.15 px (NIS 0.19), 1.16 at 0.125 "
+        "(NIS 0.27), 0.5 at 0.25; with the replay start (sixteenth session) 0.25 px was "
+        "needed, the start leaving the mass centre's error along the rotation axis in runs 17 "
+        "and 19 (NEES/dof 3.2 and 4.7 there at 0.25 px; docs/results/consistency.md, "
         "Chang section)",
     )
 
