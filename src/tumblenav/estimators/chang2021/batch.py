@@ -41,21 +41,12 @@ from scipy.stats import chi2
 from tumblenav import rotations as rot
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators.chang2021.measurements import FeatureTracks
-from tumblenav.estimators.chang2021.model import omega_LI_L
+from tumblenav.estimators.chang2021.model import INERTIA_BASIS, omega_LI_L
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-_NI = 5
-_J_BASIS = np.zeros((_NI, 3, 3))
-_J_BASIS[0, 0, 0], _J_BASIS[0, 2, 2] = 1.0, -1.0
-_J_BASIS[1, 1, 1], _J_BASIS[1, 2, 2] = 1.0, -1.0
-for _i, (_r, _c) in enumerate(((0, 1), (0, 2), (1, 2))):
-    _J_BASIS[2 + _i, _r, _c] = _J_BASIS[2 + _i, _c, _r] = 1.0
-
-
-def _inertia(j: Array) -> Array:
-    return np.eye(3) + np.einsum("p,pij->ij", j, _J_BASIS)
+_NI = len(INERTIA_BASIS)  # the inertia parameters j: J = I + D(j)
 
 
 @dataclass(frozen=True)
@@ -161,7 +152,7 @@ def _trajectories(omega0: Array, j: Array, t: Array, n: float) -> tuple[Array, A
     motions from ``(I, omega0[b])`` with inertia ``J(j[b])``: the filter's propagation
     (:func:`.model.propagate_mean`: RK4 per interval, the quaternion normalised; compiled,
     for a stack of initial values at once: the fit's central differences)."""
-    J = np.eye(3) + np.einsum("bp,pij->bij", np.asarray(j, float), _J_BASIS)
+    J = np.eye(3) + np.einsum("bp,pij->bij", np.asarray(j, float), INERTIA_BASIS)
     Q, W = _propagate(
         np.ascontiguousarray(omega0, dtype=float),
         J,

@@ -84,6 +84,15 @@ X_ATT, X_RATE, X_POS, X_VEL, X_OFF = (LAYOUT.nom(n) for n in _NAMES)
 E_ATT, E_RATE, E_POS, E_VEL, E_OFF = (LAYOUT.err(n) for n in _NAMES)
 DIM = LAYOUT.dim  # 15
 
+# ekf-pose's estimated inertia (map: state; tumblenav's): J = I + D(j), D symmetric and
+# traceless (the scale is not observable), j = (a, b, d, e, f),
+# D = [[a, d, e], [d, b, f], [e, f, -a - b]]: D(j) = sum_p j_p INERTIA_BASIS[p]
+INERTIA_BASIS = np.zeros((5, 3, 3))
+INERTIA_BASIS[0, 0, 0], INERTIA_BASIS[0, 2, 2] = 1.0, -1.0
+INERTIA_BASIS[1, 1, 1], INERTIA_BASIS[1, 2, 2] = 1.0, -1.0
+for _i, (_r, _c) in enumerate(((0, 1), (0, 2), (1, 2))):
+    INERTIA_BASIS[2 + _i, _r, _c] = INERTIA_BASIS[2 + _i, _c, _r] = 1.0
+
 
 def omega_LI_L(n: float) -> Array:
     """Rate of L w.r.t. I, in L, for a circular orbit of mean motion ``n`` (rad/s)."""

@@ -109,6 +109,7 @@ from tumblenav.estimators.chang2021.measurements import (
     slide_covariance,
 )
 from tumblenav.estimators.chang2021.model import (
+    INERTIA_BASIS,
     error_jacobian,
     omega_LI_L,
     process_noise_density,
@@ -132,13 +133,7 @@ NX = 13  # pose nominal dimension
 NI = 5  # inertia parameters (inertia: estimated; zero covariance otherwise)
 NA = NP + NI  # where the features start in P
 _J = slice(NP, NA)
-# J = I + D(j), D symmetric and traceless (the scale is not observable): j = (a, b, d, e, f),
-# D = [[a, d, e], [d, b, f], [e, f, -a - b]]
-_J_BASIS = np.zeros((NI, 3, 3))
-_J_BASIS[0, 0, 0], _J_BASIS[0, 2, 2] = 1.0, -1.0
-_J_BASIS[1, 1, 1], _J_BASIS[1, 2, 2] = 1.0, -1.0
-for _i, (_r, _c) in enumerate(((0, 1), (0, 2), (1, 2))):
-    _J_BASIS[2 + _i, _r, _c] = _J_BASIS[2 + _i, _c, _r] = 1.0
+_J_BASIS = INERTIA_BASIS  # J = I + D(j) (model.INERTIA_BASIS)
 _J_MIN = 0.05  # smallest principal moment kept (of a mean moment 1)
 _A, _W, _R, _V = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 _MAX_SIGMA = 1e6
