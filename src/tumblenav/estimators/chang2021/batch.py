@@ -202,7 +202,7 @@ def fit_window(
     """Fit the window ``k0..k1`` (module docstring) from the initial rate ``omega0`` (That, at
     k0; the fit starts from it and from :func:`_start_rates`' turned copies and keeps the
     lowest cost) and mass centre ``rv0`` (L, at k0); None when the window has too few
-    sightings."""
+    sightings or no start converged to a solution with a positive-definite covariance."""
     tw = np.asarray(t[k0 : k1 + 1], float)
     ok = tracks.ok_p[k0 : k1 + 1]
     ids = np.flatnonzero(ok.any(axis=0))
@@ -287,15 +287,19 @@ def fit_window(
                 it += 1
                 Hpp, bp, Hss, Hsp, bs = normal(p, s, R, e, use)
                 while True:  # the map eliminated (Schur complement), damped
-                    Hss_inv = np.linalg.inv(
-                        Hss + lam * np.einsum("mii->mi", Hss)[..., None] * np.eye(3)
-                    )
-                    HpsHi = np.einsum("mac,mab->mcb", Hsp, Hss_inv)
-                    A = Hpp + lam * np.diag(np.diag(Hpp)) - np.einsum("mcb,mbd->cd", HpsHi, Hsp)
-                    dp = np.linalg.solve(A, bp - np.einsum("mcb,mb->c", HpsHi, bs))
-                    ds = np.einsum("mab,mb->ma", Hss_inv, bs - np.einsum("mac,c->ma", Hsp, dp))
-                    e_new, R_new = residuals(p + dp, s + ds)
-                    cost_new = cost_of(e_new, p + dp, use)
+                    try:
+                        Hss_inv = np.linalg.inv(
+                            Hss + lam * np.einsum("mii->mi", Hss)[..., None] * np.eye(3)
+                        )
+                        HpsHi = np.einsum("mac,mab->mcb", Hsp, Hss_inv)
+                        A = Hpp + lam * np.diag(np.diag(Hpp))
+                        A -= np.einsum("mcb,mbd->cd", HpsHi, Hsp)
+                        dp = np.linalg.solve(A, bp - np.einsum("mcb,mb->c", HpsHi, bs))
+                        ds = np.einsum("mab,mb->ma", Hss_inv, bs - np.einsum("mac,c->ma", Hsp, dp))
+                        e_new, R_new = residuals(p + dp, s + ds)
+                        cost_new = cost_of(e_new, p + dp, use)
+                    except np.linalg.LinAlgError:  # a start that ran off: no step
+                        cost_new = np.inf
                     if cost_new <= cost or lam > 1e8:
                         break
                     lam *= 10.0
@@ -325,14 +329,20 @@ def fit_window(
             # refused by its cost
         if best is None or out[5] < best[5]:
             best = out
-    assert best is not None
+    if best is None or not np.isfinite(best[5]):
+        return None
     p, s, e, R, use, _, it = best
 
     # covariance of (p, s) at the solution (undamped): the Schur complement's inverse
     Hpp, _, Hss, Hsp, _ = normal(p, s, R, e, use)
-    Hss_inv = np.linalg.inv(Hss)
-    HpsHi = np.einsum("mac,mab->mcb", Hsp, Hss_inv)
-    Spp = np.linalg.inv(Hpp - np.einsum("mcb,mbd->cd", HpsHi, Hsp))
+    try:
+        Hss_inv = np.linalg.inv(Hss)
+        HpsHi = np.einsum("mac,mab->mcb", Hsp, Hss_inv)
+        Spp = np.linalg.inv(Hpp - np.einsum("mcb,mbd->cd", HpsHi, Hsp))
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.all(np.isfinite(Spp)) and np.all(np.linalg.eigvalsh(0.5 * (Spp + Spp.T)) > 0)):
+        return None
     # keep the tracks seen at k1 (the longest seen first), at most max_features
     at_end = np.flatnonzero(ok[-1, ids])
     age = ok[:, ids[at_end]].sum(axis=0)

@@ -537,7 +537,8 @@ class StateSteps(TrackSteps):
         resolves (:meth:`_window_noise_ratio` at most ``batch_noise_ratio``) its solution and
         covariance are the first belief; elsewhere the replay (:meth:`_replay`, which carries
         Q) runs from the fit's rate, mass centre and map (its first-estimate Jacobians there)
-        instead of the q-method's and the first triangulations."""
+        instead of the q-method's and the first triangulations. Where the fit finds no
+        solution (:func:`.batch.fit_window` None) the replay starts as without it."""
         tt = self.meas.t
         omega0 = s.omega_k0 if s.omega_k0 is not None else x_end[4:7]
         rv0 = cw_stm(self.n_orbit, float(tt[s.k0] - tt[s.k])) @ x_end[7:13]
@@ -557,8 +558,8 @@ class StateSteps(TrackSteps):
             gate_probability=self.tun.feature_gate_probability,
             max_features=self.tun.max_map_features,
         )
-        if fit is None:
-            return None, StepInfo(skipped={"initialising": 1})
+        if fit is None:  # no solution: the replay as before
+            return self._replay(s, x_end, P_end)
         ratio, Qd = self._window_noise(fit, float(tt[s.k] - tt[s.k0]))
         cost = fit.cost / max(fit.dof, 1)
         if ratio <= self.tun.batch_noise_ratio:
