@@ -652,9 +652,20 @@ def test_regauge_carries_the_gauge_to_the_updated_estimate():
     Nb, Na = S.gauge_direction(x, j, s), S.gauge_direction(xa, ja, sa)
     P = Nb @ Nb.T
     np.testing.assert_allclose(S.regauge(P, (x, j, s), (xa, ja, sa), True), Na @ Na.T, atol=1e-12)
-    Q = np.diag(rng.uniform(0.5, 2.0, len(P)))
-    Q[:3, :] = Q[:, :3] = 0.0  # no attitude variance: nothing to re-express
-    np.testing.assert_allclose(S.regauge(Q, (x, j, s), (xa, ja, sa), True), Q, atol=1e-15)
+    # any covariance: A P A^T with A = T(after)^-1 T(before), T built in full (features too)
+    G = rng.normal(size=(len(P), len(P)))
+    Q = G @ G.T
+
+    def T_full(x, j, s):
+        T = np.eye(len(P))
+        T[: S.NA, : S.NA] = S.gauge_transform(x[4:7], S.inertia_of(j))
+        T[S.NA :, :3] = rot.skew(s).reshape(-1, 3)
+        return T
+
+    A = np.linalg.solve(T_full(xa, ja, sa), T_full(x, j, s))
+    np.testing.assert_allclose(
+        S.regauge(Q, (x, j, s), (xa, ja, sa), True), A @ Q @ A.T, rtol=1e-10, atol=1e-10
+    )
 
 
 def test_batch_trajectories_are_the_filters_propagation():
@@ -755,34 +766,31 @@ def test_batch_start_recovers_a_window_within_its_covariance():
     assert 0.85 < np.mean(costs) < 1.15, costs
 
 
-@pytest.mark.parametrize(("fit", "covered"), [("batch", True), ("replay", False)])
-def test_batch_start_covers_its_error_at_chang_s_printed_range(fit, covered):
+def test_batch_start_covers_its_error_at_chang_s_printed_range():
     """Chang's printed 59 m on point tracks (one epoch fixes the attitude to ~15 deg across the
     line of sight), run 2 of the montecarlo seeds: the replay start ends 4.7 / 1.4 / -6.3 deg
     off per axis at a 1-sigma of 0.10 / 0.09 / 0.12 deg; the batch start (the default) within 3
     sigma of the truth on each axis (measured -0.05 / -0.07 / 0.09 deg at 0.15 / 0.10 / 0.18,
-    the window's Q included). A replay that covers its error here would be news: the test says
-    so."""
+    the window's Q included)."""
     from tumblenav.campaign.store import run_seed
 
     sc = load_scenario("chang2021").with_updates(
         **{"sensor.images": None, "duration_s": 24.0, "steady_state_window_s": [0.0, 24.0]}
     )
-    sc = sc.with_updates(**{"estimator.tuning": {"start_fit": fit}})
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, 2))
     h = get("ekf-pose").run(context_from_scenario(sc), meas, np.random.default_rng(0))
     k = int(h.info["start_epoch"])
-    assert h.info["start_fit"] == ("batch" if fit == "batch" else "replay")
+    assert h.info["start_fit"] == "batch"
     dx = h.layout.boxminus(truth_state(truth, h)[k], h.x[k])
     sig = np.sqrt(np.diag(h.P[k]))
     att = h.layout.err("attitude")
-    assert np.all(np.abs(dx[att]) < 3 * sig[att]) == covered, (dx[att], sig[att])
+    assert np.all(np.abs(dx[att]) < 3 * sig[att]), (dx[att], sig[att])
 
 
 def test_batch_start_refuses_a_window_it_cannot_fit():
-    """Fault injection: a window whose sightings fix no rotation (every point at the mass
-    centre, and a window of NaN-free but coincident tracks) gives no fit (None), never an
-    exception; ekf-pose then starts by the replay."""
+    """Fault injection: a window whose sightings fix no rotation (every sighting at one
+    point) never raises; a fit, if any, says it knows nothing of the attitude (1-sigma over
+    1 rad); a window without sightings gives none (ekf-pose then starts by the replay)."""
     from tumblenav.estimators.chang2021 import batch as B
 
     tracks, t, (w0, j, rv0, s, R) = _synthetic_window(0)
@@ -795,8 +803,9 @@ def test_batch_start_refuses_a_window_it_cannot_fit():
         centre_sigma=0.5, noise_scale=1.0, first_noise_scale=1.0, gate_probability=0.9999,
         max_features=120,
     )  # fmt: skip
-    if fit is not None:  # a fit of a point: its covariance must still be a covariance
-        assert np.all(np.isfinite(fit.P)) and np.linalg.eigvalsh(fit.P).min() > -1e-9
+    if fit is not None:  # a fit of a point: its covariance must still say so
+        assert np.all(np.isfinite(fit.P))
+        assert np.sqrt(np.linalg.eigvalsh(fit.P[:3, :3]).max()) > 1.0
     none = dataclasses.replace(tracks, ok_p=np.zeros_like(ok))
     assert B.fit_window(
         none, t, 0, len(t) - 1, w0, rv0, 1.1e-3, estimate_inertia=True, inertia_sigma=0.05,

@@ -197,12 +197,15 @@ def fit_window(
     first_noise_scale: float,
     gate_probability: float,
     max_features: int,
+    j_fixed: Array | None = None,
     iterations: int = 40,
 ) -> BatchStart | None:
     """Fit the window ``k0..k1`` (module docstring) from the initial rate ``omega0`` (That, at
     k0; the fit starts from it and from :func:`_start_rates`' turned copies and keeps the
-    lowest cost) and mass centre ``rv0`` (L, at k0); None when the window has too few
-    sightings or no start converged to a solution with a positive-definite covariance."""
+    lowest cost) and mass centre ``rv0`` (L, at k0); the inertia parameters are estimated
+    (``estimate_inertia``) or fixed at ``j_fixed`` (default the sphere). None when the window
+    has too few sightings, or no start reaches a finite cost with a positive-definite
+    covariance."""
     tw = np.asarray(t[k0 : k1 + 1], float)
     ok = tracks.ok_p[k0 : k1 + 1]
     ids = np.flatnonzero(ok.any(axis=0))
@@ -210,13 +213,13 @@ def fit_window(
         return None
     kk, ii = np.nonzero(ok[:, ids])  # sightings: window epoch, map index
     rho = tracks.p[k0 + kk, ids[ii]]
-    first = np.full(len(ids), -1)  # each track's first sighting
-    first[ii[::-1]] = np.arange(len(kk))[::-1]
+    _, first = np.unique(ii, return_index=True)  # each track's first sighting (kk sorted)
     scale = np.full(len(kk), noise_scale)
     scale[first] = first_noise_scale  # a track's later sightings may be stated finer
     Sig = scale[:, None, None] * tracks.P[k0 + kk, ids[ii]]
     Wh = np.linalg.inv(np.linalg.cholesky(Sig))  # whitening: Wh (rho - pred)
     nj = _NI if estimate_inertia else 0
+    j0 = np.zeros(_NI) if j_fixed is None else np.asarray(j_fixed, float)  # when not estimated
     npar = 3 + nj + 6
     c0 = np.average(tracks.p[k0, ids[ok[0, ids]]], axis=0)  # the first frame's centroid
     prior_p = np.zeros(npar)
@@ -227,7 +230,7 @@ def fit_window(
     Phi = np.stack([cw_stm(n, float(tk - tw[0])) for tk in tw])  # (K, 6, 6)
 
     def poses(p: Array) -> tuple[Array, Array, Array]:
-        jj = p[3 : 3 + nj] if nj else np.zeros(_NI)
+        jj = p[3 : 3 + nj] if nj else j0
         R, W = _trajectories(p[None, :3], jj[None], tw, n)
         return R[0], W[0], Phi[:, :3] @ p[3 + nj :]
 
@@ -236,7 +239,7 @@ def fit_window(
         R (2, 3 + nj, K, 3, 3), W (2, 3 + nj, K, 3)."""
         E = h * np.eye(npar)[: 3 + nj]
         P2 = np.concatenate([p + E, p - E])
-        jj = P2[:, 3 : 3 + nj] if nj else np.zeros((len(P2), _NI))
+        jj = P2[:, 3 : 3 + nj] if nj else np.tile(j0, (len(P2), 1))
         R, W = _trajectories(P2[:, :3], jj, tw, n)
         return R.reshape(2, 3 + nj, *R.shape[1:]), W.reshape(2, 3 + nj, *W.shape[1:])
 
@@ -282,7 +285,10 @@ def fit_window(
         use = np.ones(len(kk), bool)
         e, R = residuals(p, s)
         cost, lam, it = cost_of(e, p, use), 1e-3, 0
+        if not np.isfinite(cost):  # a start that cannot even be evaluated
+            return p, s, e, R, use, np.inf, it
         for rnd in range(3):
+            converged = False
             for _ in range(iterations):
                 it += 1
                 Hpp, bp, Hss, Hsp, bs = normal(p, s, R, e, use)
@@ -303,15 +309,18 @@ def fit_window(
                     if cost_new <= cost or lam > 1e8:
                         break
                     lam *= 10.0
-                if cost_new > cost:
+                if not cost_new <= cost:  # no step lowers the cost: a minimum
+                    converged = True
                     break
                 done = cost - cost_new < 1e-9 * cost
                 p, s, e, R, cost = p + dp, s + ds, e_new, R_new, cost_new
                 lam = max(lam / 10.0, 1e-9)
                 if done:
+                    converged = True
                     break
+            # gate only at a minimum: away from one the residuals are the start's, not outliers
             bad = use & (np.sum(e**2, axis=1) > chi2.ppf(gate_probability, 3))
-            if not bad.any() or rnd == 2:
+            if not converged or not bad.any() or rnd == 2:
                 break
             use &= ~bad
             cost = cost_of(e, p, use)
@@ -344,7 +353,9 @@ def fit_window(
     if not (np.all(np.isfinite(Spp)) and np.all(np.linalg.eigvalsh(0.5 * (Spp + Spp.T)) > 0)):
         return None
     # keep the tracks seen at k1 (the longest seen first), at most max_features
-    at_end = np.flatnonzero(ok[-1, ids])
+    # (a track with every sighting gated out, a slip, is left to the filter to augment again)
+    used = np.bincount(ii[use], minlength=len(ids)) > 0
+    at_end = np.flatnonzero(ok[-1, ids] & used)
     age = ok[:, ids[at_end]].sum(axis=0)
     keep = at_end[np.argsort(-age, kind="stable")[:max_features]]
     m = len(keep)
@@ -377,7 +388,7 @@ def fit_window(
     return BatchStart(
         k1,
         x,
-        p[3 : 3 + nj].copy() if nj else np.zeros(_NI),
+        p[3 : 3 + nj].copy() if nj else j0.copy(),
         ids[keep],
         s[keep],
         0.5 * (P + P.T),

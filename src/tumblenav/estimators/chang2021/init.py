@@ -103,7 +103,7 @@ class Start:
     P_omega_k0: Array | None = None
     fit: str = "window"  # how ekf-pose's map state took the start: replay, batch, batch+replay
     fit_cost: float | None = None  # the batch fit's whitened cost per residual
-    fit_noise_ratio: float | None = None  # slam.StateSteps._window_noise_ratio
+    fit_noise_ratio: float | None = None  # slam.StateSteps._window_noise
 
 
 def start(

@@ -56,7 +56,9 @@ observable, so nothing is measured twice.
   any linearisation point, since ``F N = dN/dt``) and re-expressed at each update's estimate
   (:func:`regauge`), as an invariant EKF does (Barrau & Bonnabel 2015, "An EKF-SLAM algorithm
   with consistency properties", arXiv:1510.06263). The start replay keeps the first-estimate
-  Jacobians (its passes relinearise them at the previous pass's map).
+  Jacobians (its passes relinearise them at the previous pass's map). With ``inertia:
+  given`` (a fixed non-spherical tensor) a rotation of That changes the dynamics, there is no
+  gauge, and the plain EKF runs.
 * Tracks not observed at an epoch are marginalised (their rows and columns removed); at most
   ``max_map_features`` are kept, the longest tracked first (age so far, causal).
 * Per-feature chi-square gate (``feature_gate_probability``, 3 dof): a rejected feature is
@@ -207,7 +209,7 @@ def gauge_transform(omega: Array, J: Array | None) -> Array:
     a rotation ``dphi`` of That (the map's frame, unobservable) is ``dtheta = dphi`` alone:
     ``domega' = domega + [omega x] dtheta``, ``dj' = dj - Gamma(J) dtheta`` (``J`` None: the
     inertia is not a state). The features' part, ``ds' = ds + [s x] dtheta``, is applied where
-    needed (module docstring, :meth:`StateSteps.gauge`)."""
+    needed (module docstring, :func:`regauge`)."""
     T = np.eye(NA)
     T[_W, _A] = rot.skew(omega)
     if J is not None:
@@ -391,7 +393,9 @@ def increment_check(
     increment, so a filter whose rate or attitude has run away cannot explain it away. The
     covariance is the sum of the q-method's, ``R_LThat(a) (P_a + P_k) R_ThatL(a)`` (the
     filter's, without the cross-covariance of the two epochs: larger than the truth when they
-    are positively correlated, as a smoothly propagated attitude is) and ``floor_rad^2 I``.
+    are positively correlated, as a smoothly propagated attitude is) and ``floor_rad^2 I``;
+    the q-method's part at least the two epochs' :func:`.qmethod.epoch_attitude_sigma`
+    squared on each axis across the line of sight.
     None when fewer than ``min_features`` features span the interval or they are collinear."""
     from tumblenav.estimators.chang2021.qmethod import (
         epoch_attitude_sigma,
@@ -422,8 +426,10 @@ def increment_check(
     M = np.eye(3) - np.outer(los, los)
     var_e = epoch_attitude_sigma(tracks.p[a, c], Sa) ** 2
     var_e += epoch_attitude_sigma(tracks.p[k, c], Sk) ** 2
-    if np.isfinite(var_e):
-        P_m = P_m + max(0.0, var_e - 0.5 * float(np.trace(M @ P_m @ M))) * M
+    if np.isfinite(var_e):  # each axis across the line of sight raised to var_e
+        B = np.linalg.svd(M)[0][:, :2]  # a basis of the plane
+        lam, V = np.linalg.eigh(B.T @ P_m @ B)
+        P_m = P_m + B @ V @ np.diag(np.maximum(0.0, var_e - lam)) @ V.T @ B.T
     R_LT_a = rot.quat_to_matrix(q_a).T
     D_f = R_LT_a @ rot.quat_to_matrix(q_k)  # the filter's increment
     S = P_m + R_LT_a @ (P_a + P_k) @ R_LT_a.T + floor_rad**2 * np.eye(3)
@@ -534,7 +540,7 @@ class StateSteps(TrackSteps):
         :func:`.batch.fit_window`) from the window's rate line at k0 and its mass-centre fit
         carried back to k0. The fit takes the window's motion as torque-free: where the
         scenario's process noise turns the attitude over the window by less than the fit
-        resolves (:meth:`_window_noise_ratio` at most ``batch_noise_ratio``) its solution and
+        resolves (:meth:`_window_noise` at most ``batch_noise_ratio``) its solution and
         covariance are the first belief; elsewhere the replay (:meth:`_replay`, which carries
         Q) runs from the fit's rate, mass centre and map (its first-estimate Jacobians there)
         instead of the q-method's and the first triangulations. Where the fit finds no
@@ -557,6 +563,7 @@ class StateSteps(TrackSteps):
             first_noise_scale=1.0,
             gate_probability=self.tun.feature_gate_probability,
             max_features=self.tun.max_map_features,
+            j_fixed=None if self.tun.inertia == "estimated" else inertia_params(self.inertia),
         )
         if fit is None:  # no solution: the replay as before
             return self._replay(s, x_end, P_end)
@@ -704,7 +711,9 @@ class StateSteps(TrackSteps):
         Gauss-Newton on the window that the current estimate's Jacobians cannot do: on
         Chang's printed 59 m with point tracks, runs 0-1, the replay in the gauge-aligned
         errors ends 5-8 deg off against 0.4-0.8 deg)."""
-        return self.tun.invariant_errors and t > float(self.meas.t[memo.start.k])
+        # with a given non-spherical inertia a rotation of That changes the dynamics: no gauge
+        given = self.tun.inertia == "given"
+        return self.tun.invariant_errors and not given and t > float(self.meas.t[memo.start.k])
 
     def predict(self, belief: Belief, t: float) -> Belief:
         dt = t - belief.t

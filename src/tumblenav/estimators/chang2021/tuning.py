@@ -64,7 +64,11 @@ class PoseTuning(BaseModel):
         "'replay': the filter run over the window start_passes times (start_replay). "
         "'batch' (tumblenav's, issue 18): a Gauss-Newton fit of the window's torque-free "
         "motion, mass centre and map to every sighting (a bundle adjustment; "
-        "tumblenav.estimators.chang2021.batch), its covariance the first belief's",
+        "tumblenav.estimators.chang2021.batch); the fit and its covariance (plus the "
+        "window's Q) are the first belief where the process noise over the window is within "
+        "batch_noise_ratio of the fit's attitude variance (Chang's printed 59 m), elsewhere "
+        "the replay runs from the fit's rate, mass centre and map (at close range, or with "
+        "disturbances); without a fit, the replay as with 'replay'",
     )
     batch_noise_ratio: float = Field(
         1.0,
