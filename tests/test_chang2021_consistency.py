@@ -61,7 +61,7 @@ def test_start_rate_is_the_line_at_k0_and_the_axis_is_released():
     the features cannot see (H N = 0 at that epoch)."""
     sc = _scenario(25.0, **{"estimator.tuning": {"init_frames": 60, "start_passes": 1}})
     truth, meas = simulate(sc, 5)
-    tun = PoseTuning(init_frames=60, start_passes=1)
+    tun = PoseTuning(init_frames=60, start_passes=1, start_fit="replay")
     steps = StateSteps(meas=meas, tun=tun, n_orbit=sc.chaser.orbit.mean_motion_rad_s)
     s, _ = steps.start_at(59)
     assert s is not None and s.omega_k0 is not None and s.P_omega_k0 is not None
@@ -73,7 +73,7 @@ def test_start_rate_is_the_line_at_k0_and_the_axis_is_released():
     w_true = R_TL0.T @ (truth.omega_TI_T[k0] - w_LI_T)  # in That = L(k0)
     assert np.linalg.norm(s.omega_k0 - w_true) < 0.5 * np.linalg.norm(s.x[4:7] - w_true)
     b, _ = steps.initialise(59)
-    tun0 = PoseTuning(init_frames=60, start_passes=1, release_axis=False)
+    tun0 = PoseTuning(init_frames=60, start_passes=1, release_axis=False, start_fit="replay")
     b0, _ = StateSteps(meas=meas, tun=tun0, n_orbit=sc.chaser.orbit.mean_motion_rad_s).initialise(
         59
     )
@@ -134,7 +134,9 @@ def test_replay_relinearises_the_maps_jacobians_at_range():
         worst_att = 0.0
         for seed in (1, 2):
             truth, meas = simulate(sc, seed)
-            tun = PoseTuning(init_frames=100, start_passes=3, replay_relinearise_map=relin)
+            tun = PoseTuning(
+                init_frames=100, start_passes=3, replay_relinearise_map=relin, start_fit="replay"
+            )
             b, _ = StateSteps(meas=meas, tun=tun, n_orbit=n).initialise(99)
             assert b is not None
             k0 = b.memo.start.k0
@@ -142,7 +144,7 @@ def test_replay_relinearises_the_maps_jacobians_at_range():
             e_first = _shape_error(b.memo.s0, s_true)
             if relin:
                 # the tracks' first triangulations, mapped as the augmentation does
-                one = PoseTuning(start_passes=1, init_frames=100)
+                one = PoseTuning(start_passes=1, init_frames=100, start_fit="replay")
                 tri = StateSteps(meas=meas, tun=one, n_orbit=n)
                 b1, _ = tri.initialise(99)
                 assert b1 is not None

@@ -569,7 +569,8 @@ class StateSteps(TrackSteps):
             return self._replay(s, x_end, P_end)
         ratio, Qd = self._window_noise(fit, float(tt[s.k] - tt[s.k0]))
         cost = fit.cost / max(fit.dof, 1)
-        if ratio <= self.tun.batch_noise_ratio:
+        if ratio <= self.tun.batch_noise_ratio and self.slide2 == 0.0:  # (sliding tracks:
+            # the fit's map is rigid, the replay carries their walk)
             # the window's process noise, which the torque-free fit leaves out (at most the
             # fit's own variance here): the end attitude is no longer a function of the rate
             P = fit.P.copy()
@@ -578,7 +579,15 @@ class StateSteps(TrackSteps):
                 P[_J, :] = 0.0
                 P[:, _J] = 0.0
             s_fit = dataclasses.replace(s, fit="batch", fit_cost=cost, fit_noise_ratio=ratio)
-            memo = MapMemo(fit.ids, fit.s, fit.s.copy(), s_fit, j=fit.j)
+            # as the replay's last step leaves them: the divergence check's first epoch and
+            # the slip test's residuals at the start epoch
+            check = (
+                (s.k, fit.x[0:4].copy(), P[_A, _A].copy()) if self.tun.check_lag_frames else None
+            )
+            resid = None
+            if self.tun.slip_probability is not None:
+                resid = (s.k, self.tracks.p[s.k, fit.ids] - predicted_features(fit.x, fit.s))
+            memo = MapMemo(fit.ids, fit.s, fit.s.copy(), s_fit, check=check, resid=resid, j=fit.j)
             return Belief(float(tt[s.k]), fit.x, P, LAYOUT_POSE, memo), StepInfo()
         lin = np.full((self.tracks.p.shape[1], 3), np.nan)
         lin[fit.window_ids] = fit.window_s
