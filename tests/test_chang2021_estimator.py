@@ -812,3 +812,28 @@ def test_batch_start_refuses_a_window_it_cannot_fit():
         centre_sigma=0.5, noise_scale=1.0, first_noise_scale=1.0, gate_probability=0.9999,
         max_features=120,
     ) is None  # fmt: skip
+
+
+def test_batch_start_belief_is_a_covariance_under_strong_process_noise():
+    """The fit as the first belief (batch_noise_ratio large) on chang_paper (q_r 1e-8 over a
+    20 s window): its covariance, the window's Q included, is positive definite (one Van Loan
+    step over the window had given eigenvalues down to -1e-7, and the update's Cholesky
+    failed)."""
+    from tumblenav.campaign.store import run_seed
+    from tumblenav.estimators.chang2021.slam import StateSteps
+    from tumblenav.estimators.chang2021.tuning import PoseTuning
+
+    sc = load_scenario("docs/results/scenarios/consistency/chang_paper.yaml")
+    sc = sc.with_updates(duration_s=22.0, steady_state_window_s=[0.0, 22.0])
+    _, meas = simulate(sc, run_seed(sc.montecarlo.seed, 0))
+    pn = sc.process_noise
+    steps = StateSteps(
+        meas=meas,
+        tun=PoseTuning(batch_noise_ratio=1e6),
+        n_orbit=float(sc.chaser.orbit.mean_motion_rad_s),
+        q_rot=float(pn.rotational_rad2_s4),
+        q_trans=float(pn.translational_m2_s4),
+    )
+    b, _ = steps.initialise(steps.k0 + 99)
+    assert b is not None and b.memo.start.fit == "batch"
+    assert np.linalg.eigvalsh(b.P).min() > 0.0

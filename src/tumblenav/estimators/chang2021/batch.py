@@ -168,8 +168,8 @@ def _start_rates(omega0: Array) -> list[Array]:
     about two axes across it. Where one epoch fixes the attitude to ~15 deg (Chang's printed
     59 m) the window's rate line can point 45-90 deg off, and Gauss-Newton from there can
     settle in another minimum (a wrong tumble that fits the sightings worse: on the 59 m point
-    tracks, runs 2 and 4, cost/dof 1.054 and 1.088 against 0.976 and 1.005 for the right
-    one, which the turned starts reach)."""
+    tracks, run 2, cost/dof 1.054 from the rate line against 0.976 from two turned starts;
+    docs/results/consistency/prototype/chang_batch_start.py)."""
     w = np.asarray(omega0, float)
     nw = float(np.linalg.norm(w))
     if not nw > 0.0:

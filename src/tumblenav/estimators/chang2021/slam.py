@@ -609,7 +609,14 @@ class StateSteps(TrackSteps):
         F[:NP, :NP] = error_jacobian(x16, J, self.n_orbit)[:NP, :NP]
         Qc = np.zeros((NA, NA))
         Qc[:NP, :NP] = process_noise_density(self.rate_noise(x16, J), self.q_accel)[:NP, :NP]
-        _, Qd = discretise(F, Qc, T)
+        # in steps of at most 1 s (one Van Loan step over the whole window loses Q's
+        # positivity: eigenvalues down to -1e-7 on chang_paper, and the update's Cholesky fails)
+        steps = max(1, int(np.ceil(T)))
+        Phi1, Q1 = discretise(F, Qc, T / steps)
+        Qd = np.zeros_like(Q1)
+        for _ in range(steps):
+            Qd = Phi1 @ Qd @ Phi1.T + Q1
+        Qd = 0.5 * (Qd + Qd.T)
         ev = np.linalg.eigvals(np.linalg.solve(fit.P[_A, _A], Qd[_A, _A]))
         return float(np.max(np.real(ev))), 0.5 * (Qd + Qd.T)
 
