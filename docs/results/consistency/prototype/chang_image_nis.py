@@ -31,6 +31,7 @@ filter's predicted variance (``nis_xyz``) and the stated noise's share of that v
 
 import importlib.util
 import json
+import os
 import pickle
 import sys
 from pathlib import Path
@@ -48,14 +49,16 @@ from tumblenav.scenario import load_scenario
 from tumblenav.simulation import run_streams, simulate
 
 mode, cache, seeds = sys.argv[1], Path(sys.argv[2]), [int(s) for s in sys.argv[3].split(",")]
-sc = load_scenario("chang2021_close")
+# TUMBLENAV_SCENARIO names another scenario, FRONTEND (JSON) the front end's tuning for `cache` (eighteenth session: the built-in chang2021 at 59 m)
+sc = load_scenario(os.environ.get("TUMBLENAV_SCENARIO", "chang2021_close"))
 est = est_base.get("ekf-pose")
 if mode == "cache":
     cache.mkdir(parents=True, exist_ok=True)
     with threadpool_limits(limits=1, user_api="blas"):
         for k in seeds:
             truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
-            tracks, _ = stages.prepare(meas, tuple(est.consumes), sc.sensor.images.frontend)
+            fe = {**(sc.sensor.images.frontend or {}), **json.loads(os.environ.get("FRONTEND", "{}"))}
+            tracks, _ = stages.prepare(meas, tuple(est.consumes), fe)
             pickle.dump((truth, tracks), open(cache / f"run{k}.pkl", "wb"))
             print("cached run", k, flush=True)
     sys.exit(0)

@@ -12,6 +12,8 @@ frame-to-frame increments::
     python chang_track_errors.py K --lk     # LK and the NCC match alone (no affine refinement)
 """
 
+import json
+import os
 import sys
 
 import numpy as np
@@ -24,8 +26,9 @@ from tumblenav.scenario import load_scenario
 from tumblenav.simulation import simulate, with_track_truth
 
 k = int(sys.argv[1])
-sc = load_scenario("chang2021_close")
-fe = sc.sensor.images.frontend
+# TUMBLENAV_SCENARIO another scenario, FRONTEND (JSON) front-end tuning (eighteenth session)
+sc = load_scenario(os.environ.get("TUMBLENAV_SCENARIO", "chang2021_close"))
+fe = {**(sc.sensor.images.frontend or {}), **json.loads(os.environ.get("FRONTEND", "{}"))}
 if "--lk" in sys.argv:
     fe = {**(fe or {}), "template_refine": False, "affine_match_refine": False}
 truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
@@ -62,3 +65,13 @@ print(f"run {k}, {good.sum()} tracks; robust sigma / RMS, (x, z, depth) px")
 print("  per-track mean", rob(M).round(3), rms(M).round(3))
 print("  scatter about it", rob(D).round(3), rms(D).round(3))
 print("  frame to frame", rob(inc).round(3))
+# the error's change from each track's first sightings, by age (what a rigid map point cannot absorb)
+age = np.cumsum(np.isfinite(E[..., 0]), 0)
+first = np.nanmean(np.where((age <= 3)[..., None], E, np.nan), 0)
+for a in (5, 10, 20, 40, 60):
+    sel = (age == a) & good[None, :] if False else (age == a)
+    dd = E[sel] - np.broadcast_to(first, E.shape)[sel]
+    dd = dd[np.all(np.isfinite(dd), 1)]
+    if len(dd):
+        print(f"  change since the first sightings at age {a}: n={len(dd)} robust", rob(dd).round(3),
+              "median", np.median(dd, 0).round(3))

@@ -1,0 +1,176 @@
+"""Why ekf-pose is over-confident on the built-in chang2021 (59 m) on images: the tracks' error
+structure or the filter? (eighteenth session, issue 18)
+
+For each run: render and track (cached under CACHE_DIR), fit every track's best rigid point in
+T with the TRUE poses (Gauss-Newton on its pixels in both cameras; the tracks seen 10 times or
+more are summarised), print the residuals' structure -- robust sigma, the common mode (the mean
+residual over the tracks of an epoch: its std over the epochs against what white noise would
+give) and the lag-1 autocorrelations -- and run ekf-pose on variants of the same tracks (same
+IDs, same sightings):
+
+* ``real``: the front end's tracks;
+* ``ideal``: the rigid points' true projections + white noise at the tracks' stated sigmas
+  (``noise_px`` at a first sighting, ``track_noise_px`` after);
+* ``common``: ``ideal`` + the real residuals' common mode of each epoch (the same for every
+  track of the epoch);
+* ``pertrack``: the rigid points' projections + the real residuals minus their common mode.
+
+Usage::
+
+    python chang_far_tracks.py CACHE_DIR SEEDS [MODES]       # MODES default real,ideal,common,pertrack
+
+Environment: TUMBLENAV_SCENARIO (default chang2021), UPDATES (JSON of dotted scenario updates,
+e.g. '{"sensor.images.supersample": 3}'), FRONTEND (JSON, the front end's tuning). The cache
+directory is per (scenario, UPDATES, FRONTEND): give each its own.
+"""
+
+import dataclasses
+import json
+import os
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from tumblenav import rotations as rot
+from tumblenav.campaign.store import run_seed
+from tumblenav.estimators import base as est_base
+from tumblenav.estimators.context import context_from_scenario
+from tumblenav.evaluation.alignment import align
+from tumblenav.frontends import stages
+from tumblenav.scenario import load_scenario
+from tumblenav.sensors.stereo import project
+from tumblenav.simulation import run_streams, simulate
+
+cache, seeds = Path(sys.argv[1]), [int(s) for s in sys.argv[2].split(",")]
+modes = (sys.argv[3] if len(sys.argv) > 3 else "real,ideal,common,pertrack").split(",")
+sc = load_scenario(os.environ.get("TUMBLENAV_SCENARIO", "chang2021"))
+upd = json.loads(os.environ.get("UPDATES", "{}"))
+if upd:
+    sc = sc.with_updates(**upd)
+fe = {**(sc.sensor.images.frontend or {}), **json.loads(os.environ.get("FRONTEND", "{}"))}
+est = est_base.get("ekf-pose")
+cache.mkdir(parents=True, exist_ok=True)
+
+
+def rob(a):
+    return 1.4826 * np.nanmedian(np.abs(a - np.nanmedian(a)))
+
+
+def lag1(r):
+    return np.nansum(r[1:] * r[:-1]) / np.nansum(r * r)
+
+
+def projections(truth, tracks, P):
+    n, _, N, _ = tracks.uv.shape
+    out = np.empty((n, 2, N, 2))
+    for k in range(n):
+        R_CL = rot.quat_to_matrix(tracks.q_CL[k])
+        out[k] = project(tracks.rig, (truth.r_L[k] + P @ truth.R_LT[k].T) @ R_CL.T)[0]
+    return out
+
+
+def rigid_points(truth, tracks):
+    """Each track's least-squares rigid point in T under the true poses (4 Gauss-Newton steps
+    from the triangulated first sighting, numerical Jacobians, all tracks at once)."""
+    obs = tracks.observed
+    n, _, N, _ = tracks.uv.shape
+    first = np.argmax(obs[:, 0], 0)
+    P = np.zeros((N, 3))
+    from tumblenav.estimators.chang2021.measurements import feature_tracks
+
+    ft = feature_tracks(tracks)
+    for i in range(N):  # the first sighting's triangulated point, into T
+        k = first[i]
+        if ft.ok_p[k, i]:
+            P[i] = truth.R_LT[k].T @ (ft.p[k, i] - truth.r_L[k])
+    for _ in range(4):
+        r0 = projections(truth, tracks, P)
+        res = np.where(obs[..., None], tracks.uv - r0, 0.0)
+        J = np.empty((n, 2, N, 2, 3))
+        for a in range(3):
+            d = np.zeros(3)
+            d[a] = 1e-4
+            J[..., a] = (projections(truth, tracks, P + d) - r0) / 1e-4
+        J = np.where(obs[..., None, None], J, 0.0)
+        A = np.einsum("kcnai,kcnaj->nij", J, J) + 1e-9 * np.eye(3)
+        b = np.einsum("kcnai,kcna->ni", J, res)
+        P = P + np.linalg.solve(A, b[..., None])[..., 0]
+    return P
+
+
+def nees(truth, h):
+    dx = h.layout.boxminus(align(truth, h).x, h.x)
+    t = h.t
+    w0, w1 = sc.window_s
+    fin = np.array([h.P[i] is not None and np.all(np.isfinite(h.P[i])) for i in range(len(t))])
+    sel = np.flatnonzero((t >= w0) & (t <= w1) & np.all(np.isfinite(dx), axis=1) & fin)
+    E = np.arange(h.layout.dim)
+    blocks = [(b.name, E[h.layout.err(b.name)]) for b in h.layout.blocks] + [("all", E)]
+    out = {
+        n: float(
+            np.mean([dx[i, ix] @ np.linalg.solve(h.P[i][np.ix_(ix, ix)], dx[i, ix]) for i in sel])
+            / len(ix)
+        )
+        for n, ix in blocks
+    }
+    nw = (t >= w0) & (t <= w1) & (h.nis_dof > 0) & np.isfinite(h.nis)
+    out["NIS"] = float(h.nis[nw].sum() / h.nis_dof[nw].sum())
+    out["att_deg"] = float(np.degrees(np.sqrt(np.mean(dx[sel][:, 0:3] ** 2))))
+    out["pos_mm"] = float(1e3 * np.sqrt(np.mean(dx[sel][:, 6:9] ** 2)))
+    return out
+
+
+with threadpool_limits(limits=1, user_api="blas"):
+    for k in seeds:
+        path = cache / f"run{k}.pkl"
+        if path.exists():
+            truth, tracks, P = pickle.load(open(path, "rb"))
+        else:
+            truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
+            tracks, stats = stages.prepare(meas, tuple(est.consumes), fe)
+            print(f"run {k} front end: {stats}", flush=True)  # why the tracks end
+            P = rigid_points(truth, tracks)
+            pickle.dump((truth, tracks, P), open(path, "wb"))
+        obs = tracks.observed
+        pr = projections(truth, tracks, P)
+        res = np.where(obs[..., None], tracks.uv - pr, np.nan)  # (n, 2, N, 2)
+        g = obs[:, 0].sum(0) >= 10
+        r = res[:, :, g]
+        cm = np.nanmean(r, 2)  # (n, 2, 2) the epoch's common mode
+        per_epoch = np.isfinite(r[:, 0, :, 0]).sum(1)
+        sig = np.array([rob(r[:, c, :, a]) for c in (0, 1) for a in (0, 1)])
+        print(
+            f"run {k}: {int(g.sum())} tracks (of {obs.shape[2]}), {per_epoch.mean():.0f} an epoch; "
+            f"residual robust sigma Lu Lv Ru Rv {sig.round(3)}, disparity "
+            f"{rob(r[:, 0, :, 0] - r[:, 1, :, 0]):.3f} px; common mode std "
+            f"{np.nanstd(cm, 0).ravel().round(3)} (white: "
+            f"{(sig / np.sqrt(per_epoch.mean())).round(3)}), its lag-1 autocorrelation "
+            f"{lag1(cm[:, 0, 0] - np.nanmean(cm[:, 0, 0])):.2f}; within a track lag-1 Lu "
+            f"{lag1(r[:, 0, :, 0]):.2f}, disparity {lag1(r[:, 0, :, 0] - r[:, 1, :, 0]):.2f}",
+            flush=True,
+        )
+        cm_all = np.nanmean(np.where(g[None, None, :, None], res, np.nan), 2, keepdims=True)
+        cm_all = np.nan_to_num(cm_all)
+        for mode in modes:
+            tr = tracks
+            if mode != "real":
+                rng = np.random.default_rng(k)
+                age = np.cumsum(obs[:, 0], 0)
+                s = np.where(age == 1, tracks.noise_px, tracks.track_noise_px)[:, None, :, None]
+                white = rng.standard_normal(pr.shape) * s
+                uv = {
+                    "ideal": pr + white,
+                    "common": pr + white + cm_all,
+                    "pertrack": pr + np.nan_to_num(res - cm_all),
+                }[mode]
+                tr = dataclasses.replace(tracks, uv=np.where(obs[..., None], uv, np.nan))
+            h = est.run(
+                context_from_scenario(sc),
+                tr,
+                run_streams(run_seed(sc.montecarlo.seed, k))["estimator"],
+            )
+            out = nees(truth, h)
+            print(f"run {k} {mode}: " + " ".join(f"{a}={v:.3g}" for a, v in out.items()), flush=True)
