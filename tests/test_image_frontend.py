@@ -33,6 +33,7 @@ from tumblenav.frontends.stereo_images.detection import (
 from tumblenav.frontends.stereo_images.ecc_kernel import ECC_OK, ecc_affine
 from tumblenav.frontends.stereo_images.matching import parabola_peak, sample_patches
 from tumblenav.frontends.stereo_images.refine import refine_affine, template_at
+from tumblenav.frontends.stereo_images.tuning import REFINED_TRACK_NOISE_PX
 from tumblenav.frontends.triangulation import triangulate_two_ray
 from tumblenav.measurements.stereo import StereoMeasurements
 from tumblenav.sensors.stereo import convergent_rig, parallel_rig, project
@@ -690,7 +691,7 @@ def test_track_images_gives_stereo_measurements():
     # the front end states its tracks' slide (none: the refinement holds them) and their noise
     # after the first sighting; the file keeps both
     assert back.slide_px2_per_frame == meas.slide_px2_per_frame == 0.0
-    assert back.track_noise_px == meas.track_noise_px == 0.15
+    assert back.track_noise_px == meas.track_noise_px == REFINED_TRACK_NOISE_PX
     lk, _ = track_images(
         iter(frames), t, rig, q, q, 0.5,
         ImageFrontEndTuning(n_min=40, n_max=40, max_age_frames=3, template_refine=False),

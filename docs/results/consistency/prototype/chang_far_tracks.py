@@ -3,7 +3,7 @@ structure or the filter? (eighteenth session, issue 18)
 
 For each run: render and track (cached under CACHE_DIR), fit every track's best rigid point in
 T with the TRUE poses (Gauss-Newton on its pixels in both cameras; the tracks seen 10 times or
-more are summarised), print the residuals' structure -- robust sigma, the common mode (the mean
+more are summarised), print the residuals' structure -- robust sigma, the common mode (the median
 residual over the tracks of an epoch: its std over the epochs against what white noise would
 give) and the lag-1 autocorrelations -- and run ekf-pose on variants of the same tracks (same
 IDs, same sightings):
@@ -11,15 +11,20 @@ IDs, same sightings):
 * ``real``: the front end's tracks;
 * ``ideal``: the rigid points' true projections + white noise at the tracks' stated sigmas
   (``noise_px`` at a first sighting, ``track_noise_px`` after);
-* ``common``: ``ideal`` + the real residuals' common mode of each epoch (the same for every
-  track of the epoch);
-* ``pertrack``: the rigid points' projections + the real residuals minus their common mode.
+* ``common``: ``ideal`` + the real residuals' common mode of each epoch (their median over the
+  epoch's tracks, the same for every track of the epoch);
+* ``pertrack``: the rigid points' projections + the real residuals minus their common mode;
+* ``noslip``: the front end's tracks without those with a residual beyond 5 robust sigmas;
+* ``tnoise=X``: the front end's tracks stating X px for a tracked sighting (``noslip+tnoise=X``
+  both);
+* ``realfirst`` / ``realtracked``: the front end's pixels at each track's first sighting only /
+  everywhere but there, ``ideal`` elsewhere.
 
 Usage::
 
-    python chang_far_tracks.py CACHE_DIR SEEDS [MODES]       # MODES default real,ideal,common,pertrack
+    python chang_far_tracks.py CACHE_DIR SEEDS [MODES]       # MODES default real,ideal,common,pertrack,noslip
 
-Environment: TUMBLENAV_SCENARIO (default chang2021), UPDATES (JSON of dotted scenario updates,
+Environment: TUMBLENAV_SCENARIO (default chang2021), TUNING (JSON, ekf-pose's), UPDATES (JSON of dotted scenario updates,
 e.g. '{"sensor.images.supersample": 3}'), FRONTEND (JSON, the front end's tuning). The cache
 directory is per (scenario, UPDATES, FRONTEND): give each its own.
 """
@@ -45,12 +50,15 @@ from tumblenav.sensors.stereo import project
 from tumblenav.simulation import run_streams, simulate
 
 cache, seeds = Path(sys.argv[1]), [int(s) for s in sys.argv[2].split(",")]
-modes = (sys.argv[3] if len(sys.argv) > 3 else "real,ideal,common,pertrack").split(",")
+modes = (sys.argv[3] if len(sys.argv) > 3 else "real,ideal,common,pertrack,noslip").split(",")
 sc = load_scenario(os.environ.get("TUMBLENAV_SCENARIO", "chang2021"))
 upd = json.loads(os.environ.get("UPDATES", "{}"))
 if upd:
     sc = sc.with_updates(**upd)
 fe = {**(sc.sensor.images.frontend or {}), **json.loads(os.environ.get("FRONTEND", "{}"))}
+tun = json.loads(os.environ.get("TUNING", "{}"))  # ekf-pose's tuning (not part of the cache)
+if tun:
+    sc = sc.with_updates(**{"estimator.tuning": {**(sc.estimator.tuning or {}), **tun}})
 est = est_base.get("ekf-pose")
 cache.mkdir(parents=True, exist_ok=True)
 
@@ -139,7 +147,9 @@ with threadpool_limits(limits=1, user_api="blas"):
         res = np.where(obs[..., None], tracks.uv - pr, np.nan)  # (n, 2, N, 2)
         g = obs[:, 0].sum(0) >= 10
         r = res[:, :, g]
-        cm = np.nanmean(r, 2)  # (n, 2, 2) the epoch's common mode
+        # the epoch's common mode: the median over its tracks (the mean follows the few slipped
+        # tracks' pixel-size residuals, which the filter's slip test and gate remove)
+        cm = np.nanmedian(r, 2)  # (n, 2, 2)
         per_epoch = np.isfinite(r[:, 0, :, 0]).sum(1)
         sig = np.array([rob(r[:, c, :, a]) for c in (0, 1) for a in (0, 1)])
         print(
@@ -147,21 +157,45 @@ with threadpool_limits(limits=1, user_api="blas"):
             f"residual robust sigma Lu Lv Ru Rv {sig.round(3)}, disparity "
             f"{rob(r[:, 0, :, 0] - r[:, 1, :, 0]):.3f} px; common mode std "
             f"{np.nanstd(cm, 0).ravel().round(3)} (white: "
-            f"{(sig / np.sqrt(per_epoch.mean())).round(3)}), its lag-1 autocorrelation "
+            f"{(1.2533 * sig / np.sqrt(per_epoch.mean())).round(3)}), its lag-1 autocorrelation "
             f"{lag1(cm[:, 0, 0] - np.nanmean(cm[:, 0, 0])):.2f}; within a track lag-1 Lu "
             f"{lag1(r[:, 0, :, 0]):.2f}, disparity {lag1(r[:, 0, :, 0] - r[:, 1, :, 0]):.2f}",
             flush=True,
         )
-        cm_all = np.nanmean(np.where(g[None, None, :, None], res, np.nan), 2, keepdims=True)
+        # tracks that slip: a residual beyond 5 robust sigmas (of the larger axis) anywhere
+        big = np.nanmax(np.abs(np.where(obs[..., None], res, 0.0)), axis=(0, 1, 3)) > 5 * sig.max()
+        rc = np.where(big[None, None, :, None], np.nan, res)[:, :, g]
+        print(
+            f"   tracks with a residual beyond 5 sigma: {int(big[g].sum())} of {int(g.sum())} (all "
+            f"lengths {int(big.sum())} of {obs.shape[2]}); without them: robust sigma "
+            f"{np.array([rob(rc[:, c, :, a]) for c in (0, 1) for a in (0, 1)]).round(3)}, RMS "
+            f"{np.sqrt(np.nanmean(rc**2, axis=(0, 2))).ravel().round(3)}, within a track lag-1 Lu "
+            f"{lag1(rc[:, 0, :, 0]):.2f}, disparity {lag1(rc[:, 0, :, 0] - rc[:, 1, :, 0]):.2f}",
+            flush=True,
+        )
+        cm_all = np.nanmedian(np.where(g[None, None, :, None], res, np.nan), 2, keepdims=True)
         cm_all = np.nan_to_num(cm_all)
         for mode in modes:
             tr = tracks
-            if mode != "real":
+            parts = mode.split("+")  # noslip and tnoise=X combine: noslip+tnoise=0.05
+            if parts[0] in ("noslip", "real") or parts[0].startswith("tnoise="):
+                for part in parts:
+                    if part.startswith("tnoise="):  # another stated tracked noise
+                        tr = dataclasses.replace(tr, track_noise_px=float(part[7:]))
+                    elif part == "noslip":  # the tracks that slip (above) removed, knowing the truth
+                        o2 = obs & ~big[None, None, :]
+                        tr = dataclasses.replace(
+                            tr, observed=o2, uv=np.where(o2[..., None], tracks.uv, np.nan)
+                        )
+            else:
                 rng = np.random.default_rng(k)
                 age = np.cumsum(obs[:, 0], 0)
                 s = np.where(age == 1, tracks.noise_px, tracks.track_noise_px)[:, None, :, None]
                 white = rng.standard_normal(pr.shape) * s
+                first = (age == 1)[:, None, :, None]
                 uv = {
+                    "realfirst": np.where(first, tracks.uv, pr + white),
+                    "realtracked": np.where(first, pr + white, tracks.uv),
                     "ideal": pr + white,
                     "common": pr + white + cm_all,
                     "pertrack": pr + np.nan_to_num(res - cm_all),
