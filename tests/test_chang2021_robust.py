@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from tumblenav import rotations as rot
 from tumblenav.estimators.base import get
 from tumblenav.estimators.chang2021.measurements import projection_rows, slide_covariance
-from tumblenav.estimators.chang2021.slam import slip_test
+from tumblenav.estimators.chang2021.slam import slip_quantile, slip_test
+from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation.alignment import truth_state
 from tumblenav.scenario import load_scenario
@@ -177,3 +178,15 @@ def test_tracks_that_slide_keep_the_covariance_honest():
     assert nees[0] > 5.0
     assert 0.4 < nees[1] < 2.0
     assert att[1] <= 1.1 * att[0]
+
+
+def test_slip_quantile_follows_the_tracks_stated_precision():
+    """The slip test is tighter for tracks stated more precise after their first sighting (a
+    template tracker: the image front end), as slip_probability says for the others; off is
+    off for both (eighteenth session: on point tracks 0.99 re-anchored good tracks)."""
+    tun = PoseTuning()
+    assert slip_quantile(tun, 1.0) == tun.slip_probability == 0.9999
+    assert slip_quantile(tun, (0.08 / 0.5) ** 2) == tun.template_slip_probability == 0.99
+    assert slip_quantile(PoseTuning(template_slip_probability=None), 0.1) == 0.9999
+    assert slip_quantile(PoseTuning(slip_probability=None), 0.1) is None
+    assert slip_quantile(PoseTuning(slip_probability=None), 1.0) is None

@@ -118,6 +118,7 @@ from tumblenav.estimators.chang2021.model import (
     propagate_mean,
     rate_derivative,
 )
+from tumblenav.estimators.chang2021.tuning import PoseTuning
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -344,6 +345,18 @@ def _keep(P: Array, s: Array, keep: NDArray[np.bool_]) -> tuple[Array, Array]:
     return P[np.ix_(rows, rows)], s[keep]
 
 
+def slip_quantile(tun: PoseTuning, track_ratio: float) -> float | None:
+    """The slip test's chi-square quantile: ``tun.template_slip_probability`` for tracks stated
+    more precise after their first sighting (``track_ratio``, the tracked over the first
+    sightings' noise variance, below 1: a template tracker), else ``tun.slip_probability``;
+    None (no slip test) when ``slip_probability`` is None."""
+    if tun.slip_probability is None:
+        return None
+    if tun.template_slip_probability is not None and track_ratio < 1.0:
+        return float(tun.template_slip_probability)
+    return float(tun.slip_probability)
+
+
 def slip_test(e: Array, C: Array, probability: float, min_features: int = 10) -> NDArray[np.bool_]:
     """Which tracks slipped (jumped to another surface point) between two epochs: ``e`` (m, 3)
     each track's innovation now minus its residual after the last epoch's step (the measured
@@ -460,6 +473,11 @@ class StateSteps(TrackSteps):
         first-sighting patch, more precisely than a new corner is localised and matched)."""
         tn = getattr(self.meas, "track_noise_px", None)
         return 1.0 if tn is None else float(tn) ** 2 / self.s2
+
+    @functools.cached_property
+    def slip_p(self) -> float | None:
+        """The slip test's chi-square quantile for these tracks (:func:`slip_quantile`)."""
+        return slip_quantile(self.tun, self.track_ratio)
 
     @functools.cached_property
     def slide2(self) -> float:
@@ -796,13 +814,14 @@ class StateSteps(TrackSteps):
         P, s_map = _keep(P, s_map, seen)
         ids = ids[seen]
         slips = 0
-        if tun.slip_probability is not None and memo.resid is not None:
+        slip_p = self.slip_p
+        if slip_p is not None and memo.resid is not None:
             # slipped tracks are re-anchored: dropped here, re-augmented from this frame below
             kp, res = memo.resid
             e = tr.p[k, ids] - predicted_features(x, s_map[:, :3]) - res[seen]
             # (at the first sightings' noise: the test scales by the epoch's own tracks, so the
             # tracked noise's ratio, track_ratio, would change nothing)
-            slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], tun.slip_probability)
+            slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], slip_p)
             slips = int(slip.sum())
             if slips:
                 skipped["slips"] = slips
