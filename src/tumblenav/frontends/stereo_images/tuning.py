@@ -256,7 +256,7 @@ class ImageFrontEndTuning(BaseModel):
         "needed, the start leaving the mass centre's error along the rotation axis in runs 17 "
         "and 19 (NEES/dof 3.2 and 4.7 there at 0.25 px; docs/results/consistency.md, "
         "Chang section). 0.08 px since the eighteenth session, with ekf-pose's slip test at "
-        "0.99 (slip_probability): against each track's best rigid point under the true "
+        "0.99 for such tracks (template_slip_probability): against each track's best rigid point under the true "
         "poses, a tracked sighting scatters ~0.04 / 0.06 px (left / right, robust, white "
         "from frame to frame) with slips beyond 0.3 px in half the long tracks, which the "
         "tighter slip test re-anchors; cached runs 0-3: NEES/dof 0.96, NIS 0.36, attitude "
