@@ -721,6 +721,34 @@ def _synthetic_window(seed: int, n: float = 1.1e-3):
     return tracks, t, (w0, j, rv0, s, R[0])
 
 
+def _synthetic_batch_fit(seed: int, n: float):
+    """The batch fit of :func:`_synthetic_window` ``seed`` from a rate 70 deg off the truth's
+    direction and a mass centre 0.3 m off, and its end state's error (17: attitude (left, in
+    That), rate, position and velocity, inertia); also
+    docs/results/consistency/prototype/chang_batch_start.py's."""
+    from tumblenav.dynamics.relative_orbit import cw_stm
+    from tumblenav.estimators.chang2021 import batch as B
+
+    tracks, t, (w0, j, rv0, s, R) = _synthetic_window(seed, n)
+    guess = rot.exp_map(np.radians(70.0) * np.array([0.0, 0.6, 0.8])) @ w0
+    fit = B.fit_window(
+        tracks, t, 0, len(t) - 1, guess, rv0 + np.r_[0.3, -0.3, 0.3, 0, 0, 0], n,
+        estimate_inertia=True, inertia_sigma=0.05, centre_sigma=0.5, noise_scale=1.0,
+        first_noise_scale=1.0, gate_probability=0.9999, max_features=120,
+    )  # fmt: skip
+    assert fit is not None
+    _, W = B._trajectories(w0[None], j[None], t, n)
+    e = np.concatenate(
+        [
+            rot.log_map(R[-1] @ rot.quat_to_matrix(fit.x[0:4]).T),  # left error in That
+            W[0, -1] - fit.x[4:7],
+            cw_stm(n, t[-1]) @ rv0 - fit.x[7:13],
+            j - fit.j,
+        ]
+    )
+    return fit, e
+
+
 def test_batch_start_recovers_a_window_within_its_covariance():
     """The batch start (slam's start_fit 'batch') on synthetic windows whose motion is the
     filter's model: from a rate 70 deg off the truth's direction and a mass centre 0.3 m off,
@@ -729,29 +757,10 @@ def test_batch_start_recovers_a_window_within_its_covariance():
     residual is near 1 (the noise as stated)."""
     from scipy.stats import chi2
 
-    from tumblenav.dynamics.relative_orbit import cw_stm
-    from tumblenav.estimators.chang2021 import batch as B
-
     n = 1.1e-3
     nees, costs = [], []
     for seed in range(6):
-        tracks, t, (w0, j, rv0, s, R) = _synthetic_window(seed, n)
-        guess = rot.exp_map(np.radians(70.0) * np.array([0.0, 0.6, 0.8])) @ w0
-        fit = B.fit_window(
-            tracks, t, 0, len(t) - 1, guess, rv0 + np.r_[0.3, -0.3, 0.3, 0, 0, 0], n,
-            estimate_inertia=True, inertia_sigma=0.05, centre_sigma=0.5, noise_scale=1.0,
-            first_noise_scale=1.0, gate_probability=0.9999, max_features=120,
-        )  # fmt: skip
-        assert fit is not None
-        _, W = B._trajectories(w0[None], j[None], t, n)
-        e = np.concatenate(
-            [
-                rot.log_map(R[-1] @ rot.quat_to_matrix(fit.x[0:4]).T),  # left error in That
-                W[0, -1] - fit.x[4:7],
-                cw_stm(n, t[-1]) @ rv0 - fit.x[7:13],
-                j - fit.j,
-            ]
-        )
+        fit, e = _synthetic_batch_fit(seed, n)
         # the motion is deterministic: the end attitude and rate are functions of the rate
         # and inertia at k0, so the 17 end errors span 14 dimensions (the filter adds the
         # window's process noise); the NEES is taken on attitude, position, velocity, inertia

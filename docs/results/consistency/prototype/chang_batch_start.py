@@ -20,28 +20,9 @@ sys.path.insert(0, "tests")
 def synthetic() -> None:
     import test_chang2021_estimator as T
 
-    from tumblenav import rotations as rot
-    from tumblenav.dynamics.relative_orbit import cw_stm
-    from tumblenav.estimators.chang2021 import batch as B
-
     n = 1.1e-3
     for seed in range(6):
-        tracks, t, (w0, j, rv0, s, R) = T._synthetic_window(seed, n)
-        guess = rot.exp_map(np.radians(70.0) * np.array([0.0, 0.6, 0.8])) @ w0
-        fit = B.fit_window(
-            tracks, t, 0, len(t) - 1, guess, rv0 + np.r_[0.3, -0.3, 0.3, 0, 0, 0], n,
-            estimate_inertia=True, inertia_sigma=0.05, centre_sigma=0.5, noise_scale=1.0,
-            first_noise_scale=1.0, gate_probability=0.9999, max_features=120,
-        )  # fmt: skip
-        _, W = B._trajectories(w0[None], j[None], t, n)
-        e = np.concatenate(
-            [
-                rot.log_map(R[-1] @ rot.quat_to_matrix(fit.x[0:4]).T),
-                W[0, -1] - fit.x[4:7],
-                cw_stm(n, t[-1]) @ rv0 - fit.x[7:13],
-                j - fit.j,
-            ]
-        )
+        fit, e = T._synthetic_batch_fit(seed, n)
         sel = np.r_[0:3, 6:17]
         nees = e[sel] @ np.linalg.solve(fit.P[np.ix_(sel, sel)], e[sel]) / 14
         print(

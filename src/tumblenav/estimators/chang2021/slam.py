@@ -603,7 +603,7 @@ class StateSteps(TrackSteps):
                 (s.k, fit.x[0:4].copy(), P[_A, _A].copy()) if self.tun.check_lag_frames else None
             )
             resid = None
-            if self.tun.slip_probability is not None:
+            if self.slip_p is not None:
                 resid = (s.k, self.tracks.p[s.k, fit.ids] - predicted_features(fit.x, fit.s))
             memo = MapMemo(fit.ids, fit.s, fit.s.copy(), s_fit, check=check, resid=resid, j=fit.j)
             return Belief(float(tt[s.k]), fit.x, P, LAYOUT_POSE, memo), StepInfo()
@@ -962,7 +962,7 @@ class StateSteps(TrackSteps):
                 check = (k, x[0:4].copy(), P[_A, _A].copy())
         ids, s_map, P = self._augment(x, P, ids, s_map, k, lin)
         resid = None
-        if tun.slip_probability is not None:
+        if self.slip_p is not None:
             resid = (k, tr.p[k, ids] - predicted_features(x, s_map[:, :3]))
         return Belief(
             belief.t,
