@@ -15,6 +15,10 @@ IDs, same sightings):
   epoch's tracks, the same for every track of the epoch);
 * ``pertrack``: the rigid points' projections + the real residuals minus their common mode;
 * ``noslip``: the front end's tracks without those with a residual beyond 5 robust sigmas;
+* ``minlenN``: the front end's tracks without those shorter than N frames;
+* ``nosilhouette`` (with CLASSES=1, which prints each track's class at its first sighting from
+  the truth render's depth map): without the tracks whose first neighbourhood shows the
+  background;
 * ``tnoise=X``: the front end's tracks stating X px for a tracked sighting (``noslip+tnoise=X``
   both);
 * ``realfirst`` / ``realtracked``: the front end's pixels at each track's first sighting only /
@@ -25,7 +29,8 @@ Usage::
     python chang_far_tracks.py CACHE_DIR SEEDS [MODES]       # MODES default real,ideal,common,pertrack,noslip
 
 Environment: TUMBLENAV_SCENARIO (default chang2021), TUNING (JSON, ekf-pose's), UPDATES (JSON of dotted scenario updates,
-e.g. '{"sensor.images.supersample": 3}'), FRONTEND (JSON, the front end's tuning). The cache
+e.g. '{"sensor.images.supersample": 3}'), FRONTEND (JSON, the front end's tuning), CLASSES, EDGE_M. MODES
+``none``: the structure only. The cache
 directory is per (scenario, UPDATES, FRONTEND): give each its own.
 """
 
@@ -109,6 +114,39 @@ def rigid_points(truth, tracks):
     return P
 
 
+def track_classes(k, tracks):
+    """Each track's class at its first sighting, from the truth render's depth map in a 7 x 7
+    px neighbourhood of its left pixel: 0 the background is in it (silhouette), 1 its depth
+    spans more than EDGE_M (default 0.1 m: a depth edge), 2 neither; -1 never seen. Printed
+    with the counts."""
+    _, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
+    src = meas.source
+    obs = tracks.observed[:, 0]
+    first = np.argmax(obs, 0)
+    cls = np.full(obs.shape[1], -1)
+    edge = float(os.environ.get("EDGE_M", "0.1"))
+    for kk in np.unique(first[obs.any(0)]):
+        sun = src.sun_C[kk]
+        out = src.renderer.render(
+            src.R_CM[kk],
+            src.p_MinC[kk],
+            None if np.isnan(sun).any() else sun,
+            np.random.default_rng(0),
+            truth=True,
+        )
+        dep = np.asarray(out.depth_m[0])
+        for i in np.flatnonzero((first == kk) & obs.any(0)):
+            c, r = (int(a) for a in np.floor(tracks.uv[kk, 0, i]))
+            patch = dep[max(r - 3, 0) : r + 4, max(c - 3, 0) : c + 4]
+            cls[i] = 0 if np.isnan(patch).any() else 1 if np.ptp(patch) > edge else 2
+    print(
+        f"   track classes (silhouette / depth edge / interior): {(cls == 0).sum()} / "
+        f"{(cls == 1).sum()} / {(cls == 2).sum()} of {(cls >= 0).sum()}",
+        flush=True,
+    )
+    return cls
+
+
 def nees(truth, h):
     dx = h.layout.boxminus(align(truth, h).x, h.x)
     t = h.t
@@ -173,12 +211,34 @@ with threadpool_limits(limits=1, user_api="blas"):
             f"{lag1(rc[:, 0, :, 0]):.2f}, disparity {lag1(rc[:, 0, :, 0] - rc[:, 1, :, 0]):.2f}",
             flush=True,
         )
+        # white sightings keep the change over L frames flat in L; correlated ones grow
+        sf = [rob(res[L:, 0, :, 0] - res[:-L, 0, :, 0]) for L in (1, 2, 5, 10, 20, 40)]
+        print(
+            "   the change's robust sd over 1 / 2 / 5 / 10 / 20 / 40 frames (left u): "
+            + " / ".join(f"{v:.3f}" for v in sf),
+            flush=True,
+        )
+        cls = track_classes(k, tracks) if os.environ.get("CLASSES") else None
         cm_all = np.nanmedian(np.where(g[None, None, :, None], res, np.nan), 2, keepdims=True)
         cm_all = np.nan_to_num(cm_all)
-        for mode in modes:
+        for mode in [m for m in modes if m != "none"]:
             tr = tracks
-            parts = mode.split("+")  # noslip and tnoise=X combine: noslip+tnoise=0.05
-            if parts[0] in ("noslip", "real") or parts[0].startswith("tnoise="):
+            if mode.startswith("minlen") or mode == "nosilhouette":  # tracks left out
+                if mode == "nosilhouette":  # needs CLASSES=1
+                    keep = cls != 0
+                else:  # the tracks shorter than N frames (non-causal)
+                    keep = obs[:, 0].sum(0) >= int(mode[6:])
+                o2 = obs & keep[None, None, :]
+                tr = dataclasses.replace(
+                    tracks, observed=o2, uv=np.where(o2[..., None], tracks.uv, np.nan)
+                )
+                mode_done = True
+            else:
+                mode_done = False
+            parts = [] if mode_done else mode.split("+")  # noslip+tnoise=0.05 combine
+            if mode_done:
+                pass
+            elif parts[0] in ("noslip", "real") or parts[0].startswith("tnoise="):
                 for part in parts:
                     if part.startswith("tnoise="):  # another stated tracked noise
                         tr = dataclasses.replace(tr, track_noise_px=float(part[7:]))
