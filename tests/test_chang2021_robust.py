@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from tumblenav import rotations as rot
 from tumblenav.estimators.base import get
 from tumblenav.estimators.chang2021.measurements import projection_rows, slide_covariance
-from tumblenav.estimators.chang2021.slam import slip_quantile, slip_test
+from tumblenav.estimators.chang2021.slam import gate_quantile, slip_quantile, slip_test
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
 from tumblenav.evaluation.alignment import truth_state
@@ -190,3 +190,13 @@ def test_slip_quantile_follows_the_tracks_stated_precision():
     assert slip_quantile(PoseTuning(template_slip_probability=None), 0.1) == 0.9999
     assert slip_quantile(PoseTuning(slip_probability=None), 0.1) is None
     assert slip_quantile(PoseTuning(slip_probability=None), 1.0) is None
+
+
+def test_gate_quantile_follows_the_tracks_stated_precision():
+    """The per-feature gate likewise (nineteenth session: on point tracks 0.99 dropped good
+    features, chang_paper NEES/dof 1.03 -> 1.14)."""
+    tun = PoseTuning()
+    assert gate_quantile(tun, 1.0) == tun.feature_gate_probability == 0.9999
+    assert gate_quantile(tun, (0.06 / 0.5) ** 2) == tun.template_gate_probability == 0.99
+    assert gate_quantile(PoseTuning(template_gate_probability=None), 0.1) == 0.9999
+    assert gate_quantile(PoseTuning(feature_gate_probability=0.999), 2.0) == 0.999

@@ -20,7 +20,7 @@ IDs, same sightings):
   the truth render's depth map): without the tracks whose first neighbourhood shows the
   background;
 * ``tnoise=X``: the front end's tracks stating X px for a tracked sighting (``noslip+tnoise=X``
-  both);
+  both); ``slide=X``: stating a slide of X px^2 per frame (``real+slide=X``, ``tnoise=Y+slide=X``);
 * ``realfirst`` / ``realtracked``: the front end's pixels at each track's first sighting only /
   everywhere but there, ``ideal`` elsewhere.
 
@@ -238,10 +238,12 @@ with threadpool_limits(limits=1, user_api="blas"):
             parts = [] if mode_done else mode.split("+")  # noslip+tnoise=0.05 combine
             if mode_done:
                 pass
-            elif parts[0] in ("noslip", "real") or parts[0].startswith("tnoise="):
+            elif parts[0] in ("noslip", "real") or parts[0].startswith(("tnoise=", "slide=")):
                 for part in parts:
                     if part.startswith("tnoise="):  # another stated tracked noise
                         tr = dataclasses.replace(tr, track_noise_px=float(part[7:]))
+                    elif part.startswith("slide="):  # another stated slide, px^2 per frame
+                        tr = dataclasses.replace(tr, slide_px2_per_frame=float(part[6:]))
                     elif part == "noslip":  # the tracks that slip (above) removed, knowing the truth
                         o2 = obs & ~big[None, None, :]
                         tr = dataclasses.replace(

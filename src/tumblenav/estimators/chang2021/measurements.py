@@ -105,6 +105,16 @@ def pixel_variance(meas) -> float:
     return s2 if s2 > 0.0 else 1e-6
 
 
+def track_noise_ratio(meas) -> float:
+    """The tracked sightings' noise variance over the first sightings' (the tracks'
+    ``track_noise_px`` over ``noise_px``, squared; 1 where they state no tracked noise): below 1
+    for a template tracker such as the image front end with its affine refinement, which holds
+    a track to its first-sighting patch more precisely than a new corner is localised and
+    matched (tumblenav's, issue 18)."""
+    tn = getattr(meas, "track_noise_px", None)
+    return 1.0 if tn is None else float(tn) ** 2 / pixel_variance(meas)
+
+
 def _covariance_C(p_C: Array, rig, s2: float) -> tuple[Array, BoolArray]:
     """``Sigma_C = s2 (J^T J)^-1`` at the points ``p_C`` (..., 3) in C, and where it exists."""
     J, _ = projection_rows(p_C, rig)  # (..., 4, 3)

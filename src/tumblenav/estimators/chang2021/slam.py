@@ -61,7 +61,8 @@ observable, so nothing is measured twice.
   gauge, and the plain EKF runs.
 * Tracks not observed at an epoch are marginalised (their rows and columns removed); at most
   ``max_map_features`` are kept, the longest tracked first (age so far, causal).
-* Per-feature chi-square gate (``feature_gate_probability``, 3 dof): a rejected feature is
+* Per-feature chi-square gate (``feature_gate_probability``, 3 dof; ``template_gate_probability``
+  for template tracks, :func:`gate_quantile`): a rejected feature is
   counted (``rejected``, ``skipped['gated_out']``) and removed from the state (its track is
   suspect: a bad match or drift). Joseph-form update, symmetrised.
 * Slips (``slip_probability``; tumblenav's, Chang 2021 has none): before the update each
@@ -109,6 +110,7 @@ from tumblenav.estimators.chang2021.measurements import (
     pixel_variance,
     point_covariance,
     slide_covariance,
+    track_noise_ratio,
 )
 from tumblenav.estimators.chang2021.model import (
     INERTIA_BASIS,
@@ -345,16 +347,26 @@ def _keep(P: Array, s: Array, keep: NDArray[np.bool_]) -> tuple[Array, Array]:
     return P[np.ix_(rows, rows)], s[keep]
 
 
+def _for_tracks(default: float, template: float | None, track_ratio: float) -> float:
+    """``template`` for tracks stated more precise after their first sighting (``track_ratio``,
+    the tracked over the first sightings' noise variance, below 1: a template tracker), else
+    ``default``."""
+    return float(template) if template is not None and track_ratio < 1.0 else float(default)
+
+
 def slip_quantile(tun: PoseTuning, track_ratio: float) -> float | None:
-    """The slip test's chi-square quantile: ``tun.template_slip_probability`` for tracks stated
-    more precise after their first sighting (``track_ratio``, the tracked over the first
-    sightings' noise variance, below 1: a template tracker), else ``tun.slip_probability``;
-    None (no slip test) when ``slip_probability`` is None."""
+    """The slip test's chi-square quantile: ``tun.template_slip_probability`` for template
+    tracks (:func:`_for_tracks`), else ``tun.slip_probability``; None (no slip test) when
+    ``slip_probability`` is None."""
     if tun.slip_probability is None:
         return None
-    if tun.template_slip_probability is not None and track_ratio < 1.0:
-        return float(tun.template_slip_probability)
-    return float(tun.slip_probability)
+    return _for_tracks(tun.slip_probability, tun.template_slip_probability, track_ratio)
+
+
+def gate_quantile(tun: PoseTuning, track_ratio: float) -> float:
+    """The per-feature gate's chi-square quantile: ``tun.template_gate_probability`` for
+    template tracks (:func:`_for_tracks`), else ``tun.feature_gate_probability``."""
+    return _for_tracks(tun.feature_gate_probability, tun.template_gate_probability, track_ratio)
 
 
 def slip_test(e: Array, C: Array, probability: float, min_features: int = 10) -> NDArray[np.bool_]:
@@ -466,13 +478,10 @@ class StateSteps(TrackSteps):
 
     @functools.cached_property
     def track_ratio(self) -> float:
-        """The tracked sightings' noise variance over the first sightings' (the tracks'
-        ``track_noise_px`` over ``noise_px``, squared; 1 where they state no tracked noise): an
-        update weights a sighting by it, the map's augmentation by the first sighting's noise
-        (tumblenav's, issue 18: the image front end's affine refinement holds a track to its
-        first-sighting patch, more precisely than a new corner is localised and matched)."""
-        tn = getattr(self.meas, "track_noise_px", None)
-        return 1.0 if tn is None else float(tn) ** 2 / self.s2
+        """The tracked sightings' noise variance over the first sightings'
+        (:func:`.measurements.track_noise_ratio`): an update weights a sighting by it, the
+        map's augmentation by the first sighting's noise."""
+        return track_noise_ratio(self.meas)
 
     @functools.cached_property
     def slip_p(self) -> float | None:

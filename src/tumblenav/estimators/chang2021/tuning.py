@@ -307,6 +307,21 @@ class PoseTuning(BaseModel):
         "accuracy (20 runs: attitude RMSE chang_paper 0.055 -> 0.075 deg, chang_features40 "
         "0.068 -> 0.148: good tracks re-anchored), so slip_probability stays there",
     )
+    template_gate_probability: float | None = Field(
+        0.99,
+        gt=0,
+        lt=1,
+        description="feature_gate_probability for tracks whose sightings after the first are "
+        "stated more precise than a new corner (as template_slip_probability; None: "
+        "feature_gate_probability for these too; nineteenth session, issue 18). Why: a "
+        "template track that slips by a few tenths of a pixel, which the slip test misses "
+        "between two epochs, stands out against the feature's predicted position and its "
+        "few-hundredths-pixel noise. chang2021_close rendered images, cached runs 0-7 "
+        "(window 40-120 s), with the front end's tracked noise 0.06 px: NEES/dof 1.00, NIS "
+        "0.46, attitude RMSE 0.020 deg (at 0.9999: see the front end's track_noise_px). On "
+        "point tracks 0.99 is over-confident (chang_paper runs 0-5: NEES/dof 1.03 -> 1.14: "
+        "good features dropped), so feature_gate_probability stays there",
+    )
     gate_probability: float = Field(
         0.9999,
         gt=0,

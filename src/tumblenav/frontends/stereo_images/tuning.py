@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 __all__ = ["DEFAULT_TUNING", "ImageFrontEndTuning"]
 
 LK_SLIDE_PX2_PER_FRAME = 0.006  # LK alone: track_slide_px2_per_frame's description
-REFINED_TRACK_NOISE_PX = 0.08  # the affine refinements: track_noise_px's description
+REFINED_TRACK_NOISE_PX = 0.06  # the affine refinements: track_noise_px's description
 
 
 class ImageFrontEndTuning(BaseModel):
@@ -244,7 +244,7 @@ class ImageFrontEndTuning(BaseModel):
         description="what the front end states of the noise of a track's sightings after its "
         "first (px, each of u and v; the tracks' track_noise_px; the first sighting keeps the "
         "sensor's noise, sensor.noise). ekf-pose weights its updates by it. None (the "
-        "default): 0.08 px with template_refine and affine_match_refine (the sensor's noise "
+        "default): 0.06 px with template_refine and affine_match_refine (the sensor's noise "
         "where that is smaller), else the sensor's noise. Measured on chang2021_close rendered images (run 0, against the renderer's "
         "surface point under each track's first corner): robust sigma of a sighting's error "
         "about its track's mean 0.09 / 0.06 px across the line of sight and 0.54 "
@@ -261,7 +261,9 @@ class ImageFrontEndTuning(BaseModel):
         "from frame to frame) with slips beyond 0.3 px in half the long tracks, which the "
         "tighter slip test re-anchors; cached runs 0-3: NEES/dof 0.96, NIS 0.36, attitude "
         "0.026 deg at 0.08 px (1.27 / 0.57 / 0.024 at 0.06, 0.78 / 0.25 / 0.028 at 0.1, "
-        "0.44 / 0.11 / 0.028 at 0.15). At 59 m (the built-in chang2021) the sightings "
+        "0.44 / 0.11 / 0.028 at 0.15). 0.06 px since the nineteenth session, with ekf-pose's "
+        "feature gate at 0.99 for such tracks too (template_gate_probability): cached runs "
+        "0-7, NEES/dof 1.00, NIS 0.46, attitude 0.020 deg (0.80 / 0.32 / 0.021 at 0.08). At 59 m (the built-in chang2021) the sightings "
         "scatter 0.17 px and are correlated from frame to frame: that scenario states 0.15 "
         "px (docs/results/consistency/prototype/chang_far_tracks.py)",
     )
