@@ -21,6 +21,7 @@ IDs, same sightings):
   background;
 * ``tnoise=X``: the front end's tracks stating X px for a tracked sighting (``noslip+tnoise=X``
   both); ``slide=X``: stating a slide of X px^2 per frame (``real+slide=X``, ``tnoise=Y+slide=X``);
+  ``fnoise=X``: stating X px for a first sighting (``tnoise=Y+fnoise=X``);
 * ``realfirst`` / ``realtracked``: the front end's pixels at each track's first sighting only /
   everywhere but there, ``ideal`` elsewhere.
 
@@ -238,10 +239,12 @@ with threadpool_limits(limits=1, user_api="blas"):
             parts = [] if mode_done else mode.split("+")  # noslip+tnoise=0.05 combine
             if mode_done:
                 pass
-            elif parts[0] in ("noslip", "real") or parts[0].startswith(("tnoise=", "slide=")):
+            elif parts[0] in ("noslip", "real") or parts[0].startswith(("tnoise=", "slide=", "fnoise=")):
                 for part in parts:
                     if part.startswith("tnoise="):  # another stated tracked noise
                         tr = dataclasses.replace(tr, track_noise_px=float(part[7:]))
+                    elif part.startswith("fnoise="):  # another stated first-sighting noise
+                        tr = dataclasses.replace(tr, noise_px=float(part[7:]))
                     elif part.startswith("slide="):  # another stated slide, px^2 per frame
                         tr = dataclasses.replace(tr, slide_px2_per_frame=float(part[6:]))
                     elif part == "noslip":  # the tracks that slip (above) removed, knowing the truth
