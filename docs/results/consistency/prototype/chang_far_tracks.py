@@ -219,6 +219,22 @@ with threadpool_limits(limits=1, user_api="blas"):
             + " / ".join(f"{v:.3f}" for v in sf),
             flush=True,
         )
+        # left-right: the tracked sightings' residuals (and the white part, from the changes
+        # over one frame) within 5 robust sigmas, correlated between the two images?
+        age = np.cumsum(obs[:, 0], 0)
+        for what, a in (("residuals", res), ("changes over one frame", res[1:] - res[:-1])):
+            m = (age[1:] > 2) if a.shape[0] < res.shape[0] else (age > 1)
+            X = np.stack([a[:, c, :, ax][m] for c in (0, 1) for ax in (0, 1)], 1)
+            X = X[np.all(np.isfinite(X), 1)]
+            X = X[np.all(np.abs(X - np.median(X, 0)) < 5 * max(rob(X[:, i]) for i in range(4)), 1)]
+            C = np.cov(X.T)
+            sd = np.sqrt(np.diag(C))
+            print(
+                f"   tracked sightings' {what} (inliers): sd Lu Lv Ru Rv {sd.round(3)}, robust "
+                f"{np.array([rob(X[:, i]) for i in range(4)]).round(3)}; left-right correlation u "
+                f"{C[0, 2] / sd[0] / sd[2]:+.2f}, v {C[1, 3] / sd[1] / sd[3]:+.2f}",
+                flush=True,
+            )
         cls = track_classes(k, tracks) if os.environ.get("CLASSES") else None
         cm_all = np.nanmedian(np.where(g[None, None, :, None], res, np.nan), 2, keepdims=True)
         cm_all = np.nan_to_num(cm_all)

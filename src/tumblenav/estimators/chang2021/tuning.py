@@ -268,7 +268,8 @@ class PoseTuning(BaseModel):
         gt=0,
         lt=1,
         description="chi-square (3 dof) gate on each feature's q-method residual: outlier "
-        "matches are dropped and counted as outlier_features",
+        "matches are dropped and counted as outlier_features. Tracks stated more precise "
+        "after their first sighting use template_gate_probability instead",
     )
     slip_probability: float | None = Field(
         0.9999,
