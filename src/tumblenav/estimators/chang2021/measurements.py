@@ -128,8 +128,8 @@ def _covariance_C(p_C: Array, rig, s2: float) -> tuple[Array, BoolArray]:
 
 def point_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
     """The triangulation covariance (m, 3, 3) in L of points at ``p_L`` (m, 3), seen with the
-    rig attitude ``q_CL``: the same Fisher information as :func:`feature_tracks`, evaluated
-    at the given points instead of the triangulated ones.
+    rig attitude ``q_CL`` (4,) or each with its own (m, 4): the same Fisher information as
+    :func:`feature_tracks`, evaluated at the given points instead of the triangulated ones.
 
     Why (tumblenav, issue 18): at the measured point the covariance grows with the measured
     depth (``Sigma ~ y^4``), so a filter that weighs each triangulated point by it leans to
@@ -137,9 +137,10 @@ def point_covariance(p_L: Array, q_CL: Array, rig, s2: float) -> Array:
     ``~ -4 sigma_y^2 / y`` along the line of sight (chang_range20, 20 m, 0.5 px: sigma_y 0.19 m,
     -7 mm; measured -4 to -16 mm on 5 runs, with a position sigma of 2-5 mm). At the filter's
     predicted point the weight does not depend on the measurement's own noise."""
-    R_CL = rot.quat_to_matrix(q_CL)
-    P_C, ok = _covariance_C(np.asarray(p_L, float) @ R_CL.T, rig, s2)
-    P_L = np.einsum("ji,mjk,kl->mil", R_CL, P_C, R_CL)
+    p_L = np.asarray(p_L, float)
+    R_CL = np.broadcast_to(rot.quat_to_matrix(q_CL), (len(p_L), 3, 3))
+    P_C, ok = _covariance_C(np.einsum("mij,mj->mi", R_CL, p_L), rig, s2)
+    P_L = np.einsum("mji,mjk,mkl->mil", R_CL, P_C, R_CL)
     return np.where(ok[:, None, None], P_L, np.nan)
 
 

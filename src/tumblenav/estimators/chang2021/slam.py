@@ -591,6 +591,7 @@ class StateSteps(TrackSteps):
             gate_probability=self.tun.feature_gate_probability,
             max_features=self.tun.max_map_features,
             j_fixed=None if self.tun.inertia == "estimated" else inertia_params(self.inertia),
+            covariance_at=self._covariance_at if self.tun.noise_at == "predicted" else None,
         )
         if fit is None:  # no solution: the replay as before
             return self._replay(s, x_end, P_end)
@@ -624,6 +625,12 @@ class StateSteps(TrackSteps):
             s, omega_k0=fit.omega0, fit="batch+replay", fit_cost=cost, fit_noise_ratio=ratio
         )
         return self._replay(s_fit, x_fit, P_end, lin)
+
+    def _covariance_at(self, p_L: Array, k: IntArray) -> Array:
+        """The triangulation covariance (at the first sightings' noise) of points at ``p_L``
+        (M, 3) seen at the epochs ``k`` (M,): the batch start's weights at its predicted
+        points (``noise_at: predicted``, as the updates')."""
+        return point_covariance(p_L, self.meas.q_CL[k], self.meas.rig, self.s2)
 
     def _window_noise(self, fit: BatchStart, T: float) -> tuple[float, Array]:
         """How much the scenario's process noise moves the state over the window ``T`` (s):
