@@ -255,7 +255,9 @@ with threadpool_limits(limits=1, user_api="blas"):
             parts = [] if mode_done else mode.split("+")  # noslip+tnoise=0.05 combine
             if mode_done:
                 pass
-            elif parts[0] in ("noslip", "real") or parts[0].startswith(("tnoise=", "slide=", "fnoise=")):
+            elif parts[0] in ("noslip", "real") or parts[0].startswith(
+                ("tnoise=", "slide=", "fnoise=")
+            ):
                 for part in parts:
                     if part.startswith("tnoise="):  # another stated tracked noise
                         tr = dataclasses.replace(tr, track_noise_px=float(part[7:]))
@@ -263,7 +265,9 @@ with threadpool_limits(limits=1, user_api="blas"):
                         tr = dataclasses.replace(tr, noise_px=float(part[7:]))
                     elif part.startswith("slide="):  # another stated slide, px^2 per frame
                         tr = dataclasses.replace(tr, slide_px2_per_frame=float(part[6:]))
-                    elif part == "noslip":  # the tracks that slip (above) removed, knowing the truth
+                    elif (
+                        part == "noslip"
+                    ):  # the tracks that slip (above) removed, knowing the truth
                         o2 = obs & ~big[None, None, :]
                         tr = dataclasses.replace(
                             tr, observed=o2, uv=np.where(o2[..., None], tracks.uv, np.nan)
@@ -288,4 +292,9 @@ with threadpool_limits(limits=1, user_api="blas"):
                 run_streams(run_seed(sc.montecarlo.seed, k))["estimator"],
             )
             out = nees(truth, h)
-            print(f"run {k} {mode}: " + " ".join(f"{a}={v:.3g}" for a, v in out.items()), flush=True)
+            print(
+                f"run {k} {mode}: "
+                + " ".join(f"{a}={v:.3g}" for a, v in out.items())
+                + f" start_fit={h.info.get('start_fit')}",
+                flush=True,
+            )
