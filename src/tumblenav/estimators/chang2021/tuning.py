@@ -93,7 +93,10 @@ class PoseTuning(BaseModel):
         "loose. Measured (d^2 per run, runs 0-9): chang_paper and chang_range20 0.0-0.2; "
         "chang_range40 (40 m, disturbed truth, runs 0-7) 0.0-0.7 where the replay holds, "
         "18.9 and 61.4 in runs 7 and 3 where it ended 1.7 and 3.2 deg off at a 1-sigma of "
-        "~0.1 deg (NEES/dof 13 and 69 over those runs; 1.08 for run 3 with the fit instead)",
+        "~0.1 deg (NEES/dof 13 and 69 over those runs; 1.08 for run 3 with the fit instead). "
+        "Point tracks only: on image tracks (slips, a template tracker's) the rigid fit is the "
+        "weaker of the two (chang2021_close rendered images, cached run 5: the replay refused, "
+        "NEES/dof 510)",
     )
     start_replay: bool = Field(
         True,
