@@ -295,6 +295,6 @@ with threadpool_limits(limits=1, user_api="blas"):
             print(
                 f"run {k} {mode}: "
                 + " ".join(f"{a}={v:.3g}" for a, v in out.items())
-                + f" start_fit={h.info.get('start_fit')}",
+                + f" start_fit={h.info.get('start_fit')} ratio={h.info.get('start_fit_noise_ratio')}",
                 flush=True,
             )

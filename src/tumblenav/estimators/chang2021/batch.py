@@ -212,7 +212,8 @@ def fit_window(
     ``covariance_at(p_L (M, 3), epochs (M,))``: the triangulation covariance (at the first
     sightings' noise) of points at ``p_L`` seen at those epochs (NaN where none); given, the
     best start's solution is re-weighted at its own predicted points and refined, twice, as
-    the filter weights its updates (``noise_at: predicted``). Why: weights at the measured
+    the filter weights its updates (``noise_at: predicted``; ekf-pose passes it for point
+    tracks, :attr:`.slam.StateSteps._fit_at_predicted`). Why: weights at the measured
     points (``Sigma ~ depth^4``) lean to the points measured too near and pull the mass centre
     towards the camera by ~4 sigma_depth^2 / depth (:func:`.measurements.point_covariance`):
     on Chang's rig with 0.5 px at 40 m, 8 runs, the start's position NEES/dof was 8.4 and its

@@ -371,7 +371,7 @@ class PoseTuning(BaseModel):
         "grows as the depth^4, so weights taken at the measured points lean to the points "
         "measured too near and bias the mass centre towards the camera (~ -4 sigma_depth^2 / "
         "depth; measurements.point_covariance). The batch start (start_fit: batch) weights "
-        "its sightings the same way (nineteenth session: at Chang's printed 59 m on point "
+        "point tracks' sightings the same way (nineteenth session: at Chang's printed 59 m on point "
         "tracks, runs 0-7, its measured-point weights had left the start's mass centre "
         "over-confident and the velocity took up the correction, block NEES/dof 7.35 -> 0.49)",
     )
