@@ -322,7 +322,7 @@ class PoseTuning(BaseModel):
         "docs/results/consistency/prototype/chang_far_tracks.py). Cached runs 0-3 (window "
         "40-120 s), NEES/dof / NIS / attitude RMSE: 0.81 / 0.19 / 0.040 deg at 0.9999 with "
         "the tracked noise 0.15 px, 0.96 / 0.36 / 0.026 deg at 0.99 with 0.08 px (the front "
-        "end's default since). On point tracks, whose sightings are all alike, 0.99 costs "
+        "end's default then; 0.06 px since the nineteenth session). On point tracks, whose sightings are all alike, 0.99 costs "
         "accuracy (20 runs: attitude RMSE chang_paper 0.055 -> 0.075 deg, chang_features40 "
         "0.068 -> 0.148: good tracks re-anchored), so slip_probability stays there",
     )
