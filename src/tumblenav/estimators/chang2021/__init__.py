@@ -27,15 +27,14 @@ import numpy as np
 from tumblenav.errors import InputError
 from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, register
 from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
-from tumblenav.estimators.chang2021.measurements import track_noise_ratio
 from tumblenav.estimators.chang2021.model import LAYOUT
 from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
 from tumblenav.estimators.chang2021.slam import (
     LAYOUT_POSE,
     MapMemo,
     StateSteps,
-    gate_quantile,
     inertia_of,
+    tuning_for_tracks,
 )
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
@@ -100,10 +99,7 @@ class PoseEKF:
         tun = parse_tuning(scenario.estimator.tuning, PoseTuning)
         if tun.map != "state" and tun.inertia == "estimated":  # the default: map: state's
             tun = tun.model_copy(update={"inertia": "sphere"})
-        # template tracks' gate (template_gate_probability) wherever a feature is gated: the
-        # start, the batch fit, the updates and the registered map's pose fixes
-        gate = gate_quantile(tun, track_noise_ratio(meas))
-        tun = tun.model_copy(update={"feature_gate_probability": gate})
+        tun = tuning_for_tracks(tun, meas)  # template tracks' slip test and gate
         orbit = scenario.chaser.orbit
         n = float(orbit.mean_motion_rad_s) if orbit is not None else 0.0
         pn = scenario.process_noise  # the mission's disturbance assumption (never the truth)

@@ -62,7 +62,7 @@ observable, so nothing is measured twice.
 * Tracks not observed at an epoch are marginalised (their rows and columns removed); at most
   ``max_map_features`` are kept, the longest tracked first (age so far, causal).
 * Per-feature chi-square gate (``feature_gate_probability``, 3 dof; ``template_gate_probability``
-  for template tracks, :func:`gate_quantile`): a rejected feature is
+  for template tracks, :func:`tuning_for_tracks`): a rejected feature is
   counted (``rejected``, ``skipped['gated_out']``) and removed from the state (its track is
   suspect: a bad match or drift). Joseph-form update, symmetrised.
 * Slips (``slip_probability``; tumblenav's, Chang 2021 has none): before the update each
@@ -369,6 +369,21 @@ def gate_quantile(tun: PoseTuning, track_ratio: float) -> float:
     return _for_tracks(tun.feature_gate_probability, tun.template_gate_probability, track_ratio)
 
 
+def tuning_for_tracks(tun: PoseTuning, meas) -> PoseTuning:
+    """``tun`` with the slip test's and the per-feature gate's quantiles resolved for these
+    tracks (:func:`slip_quantile`, :func:`gate_quantile` at the tracks'
+    :func:`.measurements.track_noise_ratio`), once per run: the start, the batch fit, the
+    updates and the registered map's pose fixes then read ``slip_probability`` and
+    ``feature_gate_probability`` as they apply."""
+    r = track_noise_ratio(meas)
+    return tun.model_copy(
+        update={
+            "slip_probability": slip_quantile(tun, r),
+            "feature_gate_probability": gate_quantile(tun, r),
+        }
+    )
+
+
 def slip_test(e: Array, C: Array, probability: float, min_features: int = 10) -> NDArray[np.bool_]:
     """Which tracks slipped (jumped to another surface point) between two epochs: ``e`` (m, 3)
     each track's innovation now minus its residual after the last epoch's step (the measured
@@ -482,11 +497,6 @@ class StateSteps(TrackSteps):
         (:func:`.measurements.track_noise_ratio`): an update weights a sighting by it, the
         map's augmentation by the first sighting's noise."""
         return track_noise_ratio(self.meas)
-
-    @functools.cached_property
-    def slip_p(self) -> float | None:
-        """The slip test's chi-square quantile for these tracks (:func:`slip_quantile`)."""
-        return slip_quantile(self.tun, self.track_ratio)
 
     @functools.cached_property
     def slide2(self) -> float:
@@ -630,7 +640,7 @@ class StateSteps(TrackSteps):
         # slip test's residuals at the start epoch
         check = (s.k, fit.x[0:4].copy(), P[_A, _A].copy()) if self.tun.check_lag_frames else None
         resid = None
-        if self.slip_p is not None:
+        if self.tun.slip_probability is not None:
             resid = (s.k, self.tracks.p[s.k, fit.ids] - predicted_features(fit.x, fit.s))
         memo = MapMemo(fit.ids, fit.s, fit.s.copy(), s, check=check, resid=resid, j=fit.j)
         return Belief(float(self.meas.t[s.k]), fit.x, P, LAYOUT_POSE, memo)
@@ -860,14 +870,13 @@ class StateSteps(TrackSteps):
         P, s_map = _keep(P, s_map, seen)
         ids = ids[seen]
         slips = 0
-        slip_p = self.slip_p
-        if slip_p is not None and memo.resid is not None:
+        if tun.slip_probability is not None and memo.resid is not None:
             # slipped tracks are re-anchored: dropped here, re-augmented from this frame below
             kp, res = memo.resid
             e = tr.p[k, ids] - predicted_features(x, s_map[:, :3]) - res[seen]
             # (at the first sightings' noise: the test scales by the epoch's own tracks, so the
             # tracked noise's ratio, track_ratio, would change nothing)
-            slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], slip_p)
+            slip = slip_test(e, tr.P[k, ids] + tr.P[kp, ids], tun.slip_probability)
             slips = int(slip.sum())
             if slips:
                 skipped["slips"] = slips
@@ -1008,7 +1017,7 @@ class StateSteps(TrackSteps):
                 check = (k, x[0:4].copy(), P[_A, _A].copy())
         ids, s_map, P = self._augment(x, P, ids, s_map, k, lin)
         resid = None
-        if self.slip_p is not None:
+        if tun.slip_probability is not None:
             resid = (k, tr.p[k, ids] - predicted_features(x, s_map[:, :3]))
         return Belief(
             belief.t,
