@@ -1,7 +1,11 @@
-"""Why does a replayed start at range end over-confident? Per run: the replay's departure from
-the batch fit per block (attitude, rate, position, velocity, all twelve) as a chi-square
-against the sum of covariances (the fit's with the window's Q, plus the replay's), whether the
-refusal fired, and the run's NEES/dof over the window (benchmarks/block_nees.py's blocks).
+"""Why does a replayed start at range end over-confident? (twentieth session, issue 18) Per run:
+the replay's departure from the batch fit per block (attitude, rate, position, velocity, all
+twelve) as a chi-square against the sum of covariances (the fit's first-belief covariance,
+``slam.StateSteps._window_noise``, plus the replay's), the same against their difference
+(Hausman's test: an efficient and a consistent estimator; ``H`` with the positive
+eigen-directions used, ``/dof``), the fit's window-noise ratio, whether the refusal fired,
+and the run's NEES/dof over the window (benchmarks/block_nees.py's blocks). "no replay": the
+fit was the first belief (ratio at most ``batch_noise_ratio``).
 
 Usage::
 
@@ -30,24 +34,24 @@ SEEN: list[dict] = []
 _orig = slam.StateSteps._replay_refused
 
 
-def _spy(self, b, fit, Qd):
+def _spy(self, b, fit, P_fit):
     d_att = rot.log_map(rot.quat_to_matrix(fit.x[0:4]) @ rot.quat_to_matrix(b.x[0:4]).T)
     d = np.concatenate([d_att, fit.x[4:13] - b.x[4:13]])
-    C = fit.P[:12, :12] + Qd[:12, :12] + b.P[:12, :12]
+    C = P_fit[:12, :12] + b.P[:12, :12]
     row = {}
     for name, ix in (("att", slice(0, 3)), ("rate", slice(3, 6)), ("pos", slice(6, 9)),
                      ("vel", slice(9, 12)), ("all", slice(0, 12))):
         row[name] = float(d[ix] @ np.linalg.solve(C[ix, ix], d[ix]))
     # Hausman: the difference of an efficient (the replay, Q carried) and a consistent
     # estimator (the fit with the window's Q) has the difference of their covariances
-    Ch = fit.P[:12, :12] + Qd[:12, :12] - b.P[:12, :12]
+    Ch = P_fit[:12, :12] - b.P[:12, :12]
     for name, ix in (("h_att", slice(0, 3)), ("h_pos", slice(6, 9)), ("h_all", slice(0, 12))):
         w, V = np.linalg.eigh(Ch[ix, ix])
         pos = w > 1e-9 * w.max()
         y = V[:, pos].T @ d[ix]
         row[name] = float(np.sum(y**2 / w[pos]))
         row[name + "_dof"] = int(pos.sum())
-    refused = _orig(self, b, fit, Qd)
+    refused = _orig(self, b, fit, P_fit)
     row["refused"] = refused
     row["ratio"] = b.memo.start.fit_noise_ratio
     SEEN.append(row)
