@@ -200,3 +200,22 @@ def test_gate_quantile_follows_the_tracks_stated_precision():
     assert gate_quantile(tun, (0.06 / 0.5) ** 2) == tun.template_gate_probability == 0.99
     assert gate_quantile(PoseTuning(template_gate_probability=None), 0.1) == 0.9999
     assert gate_quantile(PoseTuning(feature_gate_probability=0.999), 2.0) == 0.999
+
+
+def test_batch_noise_ratio_follows_the_tracks_stated_precision():
+    """The batch start's noise ratio likewise, resolved once per run with the others
+    (twentieth session: the fit's absorbed walk is measured on point tracks, 60; template
+    tracks keep 1), and a user's explicit values are kept."""
+    from types import SimpleNamespace
+
+    from tumblenav.estimators.chang2021.slam import tuning_for_tracks
+
+    points = SimpleNamespace(noise_px=0.5, track_noise_px=None)
+    template = SimpleNamespace(noise_px=0.5, track_noise_px=0.06)
+    tun = PoseTuning()
+    assert tuning_for_tracks(tun, points).batch_noise_ratio == tun.batch_noise_ratio == 60.0
+    assert tuning_for_tracks(tun, template).batch_noise_ratio == 1.0
+    assert tuning_for_tracks(tun, template).feature_gate_probability == 0.99
+    mine = PoseTuning(batch_noise_ratio=5.0, template_batch_noise_ratio=None)
+    assert tuning_for_tracks(mine, template).batch_noise_ratio == 5.0
+    assert tuning_for_tracks(mine, points).batch_noise_ratio == 5.0

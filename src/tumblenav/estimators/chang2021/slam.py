@@ -407,16 +407,20 @@ def gate_quantile(tun: PoseTuning, track_ratio: float) -> float:
 
 
 def tuning_for_tracks(tun: PoseTuning, meas) -> PoseTuning:
-    """``tun`` with the slip test's and the per-feature gate's quantiles resolved for these
-    tracks (:func:`slip_quantile`, :func:`gate_quantile` at the tracks'
-    :func:`.measurements.track_noise_ratio`), once per run: the start, the batch fit, the
-    updates and the registered map's pose fixes then read ``slip_probability`` and
-    ``feature_gate_probability`` as they apply."""
+    """``tun`` with the slip test's and the per-feature gate's quantiles and the batch
+    start's noise ratio resolved for these tracks (:func:`slip_quantile`,
+    :func:`gate_quantile`, ``template_batch_noise_ratio`` by :func:`_for_tracks`, at the
+    tracks' :func:`.measurements.track_noise_ratio`), once per run: the start, the batch fit,
+    the updates and the registered map's pose fixes then read ``slip_probability``,
+    ``feature_gate_probability`` and ``batch_noise_ratio`` as they apply."""
     r = track_noise_ratio(meas)
     return tun.model_copy(
         update={
             "slip_probability": slip_quantile(tun, r),
             "feature_gate_probability": gate_quantile(tun, r),
+            "batch_noise_ratio": _for_tracks(
+                tun.batch_noise_ratio, tun.template_batch_noise_ratio, r
+            ),
         }
     )
 
