@@ -69,8 +69,8 @@ class PoseTuning(BaseModel):
         "first belief where the process noise over the window is within batch_noise_ratio "
         "of the fit's attitude variance (Chang's printed 59 m, ~40 m with disturbances), "
         "elsewhere the replay runs from the fit's rate, mass centre and map (at close range "
-        "with disturbances, on sliding image tracks); without a fit, the replay as with "
-        "'replay'",
+        "with disturbances; image tracks: template_batch_noise_ratio; sliding tracks "
+        "always); without a fit, the replay as with 'replay'",
     )
     batch_noise_ratio: float = Field(
         60.0,
@@ -81,8 +81,9 @@ class PoseTuning(BaseModel):
         "scenario's process noise turns the attitude over the window by at most this times "
         "the fit's own variance (the largest eigenvalue of P_fit^-1 Q_window on the "
         "attitude); above it the replay runs from the fit's solution. Measured ratios (runs "
-        "0-2, or all 20): Chang's printed 59 m 0.21-0.32, chang2021_close images 11-13 "
-        "(sliding tracks: always the replay), chang_range40 18-41 (20 runs), chang_range20 "
+        "0-2, or all 20): Chang's printed 59 m 0.21-0.32, chang2021_close images 61-10030 "
+        "(template tracks: template_batch_noise_ratio), chang_range40 18-41 (20 runs), "
+        "chang_range20 "
         "91-226 (20 runs), chang_features40 235-470, chang_paper 400-1000, chang_inertia "
         "3900-8500. 60 (twentieth session, issue 18; was 1, before the absorbed walk) lies in "
         "the gap between the two regimes measured, chosen from these cases, not derived: "
