@@ -956,3 +956,10 @@ def test_absorbed_walk_matches_simulated_walks():
     assert np.abs(whitened(G_shift, delta) - np.eye(3)).max() < 0.12
     # the end's covariance alone is no substitute (the fit averages the walk over the window)
     assert np.abs(whitened(walk[-1][0:3, 0:3], c) - np.eye(3)).max() > 0.3
+    # a target that hardly turns over the window: the shift is not separable from the line,
+    # and its covariance is capped at the end walk's (not 1.7e7 times it, uncapped)
+    x_slow = x.copy()
+    x_slow[4:7] = [1e-3, 0.0, 0.0]
+    _, G_slow = absorbed_walk(x_slow, tt, Phi1, walk)
+    top = np.linalg.eigvalsh(walk[-1][6:9, 6:9]).max()
+    assert np.all(np.isfinite(G_slow)) and np.linalg.eigvalsh(G_slow).max() <= top * (1 + 1e-9)
