@@ -297,8 +297,8 @@ def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[
     delta``: ``a, b'`` into its r0, v0, ``delta`` a shift of the map in That with the mass
     centre moved against it. Least squares on the window's epochs weighted alike, the
     attitude over the window at the end rate ``R_LThat(t) = R_LThat(T) Exp(omega (t - T))``;
-    the shift's covariance at most the walk's at the window's end (its largest eigenvalue;
-    below) (tumblenav's, issue 18; ``tests/test_chang2021_estimator.py`` checks both against
+    the shift's covariance at most the walk's at the window's end (its largest eigenvalue,
+    on each axis; below) (tumblenav's, issue 18; ``tests/test_chang2021_estimator.py`` checks both against
     simulated walks)."""
     n = len(tt)
     X = np.stack([np.ones(n), tt], axis=1)
@@ -324,13 +324,17 @@ def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[
     # Where the window turns the target too little to tell a shift of the map from the mass
     # centre's line, the regression is ill-conditioned and ``delta`` takes an arbitrary share
     # (its covariance grows as the inverse fourth power of the turn): no more of the walk
-    # than the walk has at the window's end, the fit's own covariance carrying the ambiguity
-    # (a session check: 0.05 rad/s over 20 s gave 2.8 times the end walk, 1e-3 rad/s 1.7e7)
+    # than the walk has at the window's end on any axis, the fit's own covariance carrying
+    # the ambiguity (a session check: 0.05 rad/s over 20 s gave 2.8 times the end walk, 1e-3
+    # rad/s 1.7e7). Each eigenvalue is clipped (not the whole scaled down), so that where
+    # every axis is ill-conditioned the result is the cap itself, not the ill-conditioned
+    # directions (an 11-frame run on images differed by 3e-5 relative between two roundings
+    # of the same rig when scaled).
     cap = float(np.linalg.eigvalsh(walk[-1][_R, _R]).max())
-    top = float(np.linalg.eigvalsh(G_shift).max())
-    if top > cap > 0.0:
-        G_shift *= cap / top
-    return 0.5 * (G_rot + G_rot.T), G_shift
+    lam, V = np.linalg.eigh(G_shift)
+    if lam.max() > cap:
+        G_shift = (V * np.minimum(lam, cap)) @ V.T
+    return 0.5 * (G_rot + G_rot.T), 0.5 * (G_shift + G_shift.T)
 
 
 def predicted_features(x: Array, s: Array) -> Array:
