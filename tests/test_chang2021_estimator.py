@@ -616,6 +616,25 @@ def test_a_rotation_of_the_body_frame_is_a_symmetry_of_the_error_dynamics(seed):
 
 
 @pytest.mark.parametrize("seed", range(4))
+def test_a_shift_of_the_map_against_the_mass_centre_is_unseen_by_one_epoch(seed):
+    """``shift_direction`` (the twentieth session's start covariance adds the fit's absorbed
+    shift along it): a shift of every map point in That with the mass centre moved against
+    it leaves one epoch's measurements unchanged (``H N = 0``), and its velocity column is
+    the rate of change of ``-R_LThat delta`` (central differences of the attitude, 1 ms)."""
+    from tumblenav.estimators.chang2021 import slam as S
+
+    x, j, s, J, F = _gauge_state(seed)
+    Ns = S.shift_direction(x, s)
+    Hp, R_LT = S.measurement_jacobian(x[0:4], s)
+    HN = Hp @ Ns[: S.NP] + R_LT @ Ns[S.NA :].reshape(5, 3, 3)
+    np.testing.assert_allclose(HN, 0.0, atol=1e-14)
+    h = 1e-3
+    R_LT0 = rot.quat_to_matrix(x[0:4]).T
+    dR = (R_LT0 @ rot.exp_map(x[4:7] * h) - R_LT0 @ rot.exp_map(-x[4:7] * h)) / (2 * h)
+    np.testing.assert_allclose(Ns[9:12], -dR, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(4))
 def test_gauge_aligned_propagation_keeps_the_gauge_exactly(seed):
     """One 0.2 s step: ``gauge_discretise``'s ``Phi`` takes the gauge direction at the step's
     start to the one at its end to rounding; the plain ``expm(F dt)`` misses it (the leak

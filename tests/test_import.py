@@ -177,8 +177,8 @@ def test_images_round_trip(tmp_path: Path, capsys):
     front end and ekf-pose: the same tracks and estimates to rounding (the toed-in rig's
     rotations are recomputed from the calibration). The start is the replay from the batch
     fit (template_batch_noise_ratio tiny: the ratio that applies to image tracks since the
-    twentieth session; batch_noise_ratio as well): on this 5-frame window the fit alone would be the first
-    belief, and its sigmas then differ by up to 4e-5 (relative) between the two rigs' rounding
+    twentieth session; batch_noise_ratio as well): on this 5-frame window the fit alone would
+    be the first belief, and its sigmas then differ by up to 4e-5 (relative) between the two rigs' rounding
     (seventeenth session; not diagnosed: the gate's borderline sightings are a candidate).
     The tracks state 0.08 px, the front end's default before the nineteenth session: at its
     0.06 px (and at 0.05 / 0.07) the two runs keep the same gating (NIS dof equal) but differ

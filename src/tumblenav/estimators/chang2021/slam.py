@@ -285,6 +285,20 @@ def gauge_direction(x: Array, j: Array | None, s: Array) -> Array:
     return N
 
 
+def shift_direction(x: Array, s: Array) -> Array:
+    """``N`` (17 + 3m, 3): the errors of a shift ``delta`` (That) of the map ``s`` (m, 3) with
+    the mass centre moved against it at the pose ``x``: ``ds_i = delta``, ``dr = -R_LThat
+    delta``, ``dv = -R_LThat [omega x] delta`` (its rate of change); no single epoch's
+    measurement sees it (:func:`measurement_jacobian` ``N = 0``), only the target's turn
+    does (:func:`absorbed_walk`)."""
+    R_LT = rot.quat_to_matrix(x[0:4]).T
+    N = np.zeros((NA + 3 * len(s), 3))
+    N[_R] = -R_LT
+    N[_V] = -R_LT @ rot.skew(x[4:7])
+    N[NA:] = np.tile(np.eye(3), (len(s), 1))
+    return N
+
+
 def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[Array, Array]:
     """Covariances (3, 3) of the map's common rotation and common shift that the process
     noise's walk over a start window leaves in ekf-pose's torque-free batch fit
@@ -298,8 +312,8 @@ def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[
     centre moved against it. Least squares on the window's epochs weighted alike, the
     attitude over the window at the end rate ``R_LThat(t) = R_LThat(T) Exp(omega (t - T))``;
     the shift's covariance at most the walk's at the window's end (its largest eigenvalue,
-    on each axis; below) (tumblenav's, issue 18; ``tests/test_chang2021_estimator.py`` checks both against
-    simulated walks)."""
+    on each axis; below) (tumblenav's, issue 18; ``tests/test_chang2021_estimator.py``
+    checks both against simulated walks)."""
     n = len(tt)
     X = np.stack([np.ones(n), tt], axis=1)
     w = np.linalg.solve(X.T @ X, X.T)[0]  # c = sum_i w_i dtheta_i
@@ -328,8 +342,7 @@ def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[
     # the ambiguity (a session check: 0.05 rad/s over 20 s gave 2.8 times the end walk, 1e-3
     # rad/s 1.7e7). Each eigenvalue is clipped (not the whole scaled down), so that where
     # every axis is ill-conditioned the result is the cap itself, not the ill-conditioned
-    # directions (an 11-frame run on images differed by 3e-5 relative between two roundings
-    # of the same rig when scaled).
+    # directions.
     cap = float(np.linalg.eigvalsh(walk[-1][_R, _R]).max())
     lam, V = np.linalg.eigh(G_shift)
     if lam.max() > cap:
@@ -736,7 +749,8 @@ class StateSteps(TrackSteps):
         with it: ``Q`` on the end state (the end attitude is no longer a function of the
         rate), and what the fit absorbs of the noise's walk over the window into its map
         (:func:`absorbed_walk`), as a rotation of That (the gauge direction,
-        :func:`gauge_direction`) and as a shift of the map against the mass centre.
+        :func:`gauge_direction`) and as a shift of the map against the mass centre
+        (:func:`shift_direction`).
         Why (tumblenav, issue 18, twentieth session): with ``Q`` alone, the fit as the first
         belief on chang_range40 (40 m, truth disturbed; window-noise ratio 18-41) gave
         NEES/dof 1.30 over 20 runs, its attitude 0.07 at the start and 2.5 ten seconds later
@@ -751,6 +765,7 @@ class StateSteps(TrackSteps):
         Qc[:NP, :NP] = process_noise_density(self.rate_noise(x16, J), self.q_accel)[:NP, :NP]
         # in steps of at most 1 s (one Van Loan step over the whole window loses Q's
         # positivity: eigenvalues down to -1e-7 on chang_paper, and the update's Cholesky fails)
+        # and at least 2 (absorbed_walk's regression of the shift needs three epochs)
         steps = max(2, int(np.ceil(T)))
         Phi1, Q1 = discretise(F, Qc, T / steps)
         walk = [np.zeros((NA, NA))]  # the walk's covariance at each step from k0 (zero there)
@@ -760,11 +775,7 @@ class StateSteps(TrackSteps):
         ev = np.linalg.eigvals(np.linalg.solve(fit.P[_A, _A], Qd[_A, _A]))
         G_rot, G_shift = absorbed_walk(fit.x, np.linspace(0.0, T, steps + 1), Phi1, walk)
         N = gauge_direction(fit.x, fit.j if self.tun.inertia == "estimated" else None, fit.s)
-        R_LT = rot.quat_to_matrix(fit.x[0:4]).T
-        Ns = np.zeros_like(N)  # the map shifted by delta (That), the mass centre against it
-        Ns[_R] = -R_LT
-        Ns[_V] = -R_LT @ rot.skew(fit.x[4:7])
-        Ns[NA:] = np.tile(np.eye(3), (len(fit.s), 1))
+        Ns = shift_direction(fit.x, fit.s)
         P = fit.P.copy()
         P[:NA, :NA] += Qd
         P += N @ G_rot @ N.T + Ns @ G_shift @ Ns.T
