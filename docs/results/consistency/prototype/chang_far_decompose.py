@@ -26,7 +26,6 @@ the inertia's principal ratios at the end (chang2021's truth: 1 / 0.833 / 0.667)
 """
 
 import dataclasses
-import os
 import pickle
 import sys
 from pathlib import Path
