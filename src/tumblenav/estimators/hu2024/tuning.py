@@ -38,18 +38,10 @@ class HuTuning(BaseModel):
     )
     p0_rate_rad_s: float = Field(0.02, gt=0, description="initial 1-sigma of the rate (rad/s)")
     p0_inertia: float = Field(
-        0.01,
+        0.05,
         gt=0,
         description="1-sigma of each ratio p at the start, added (ekf-dpacf) to the front "
-        "end's least-squares covariance of the ratios (which the start gate holds below "
-        "max_ratio_sigma). 0.05 until the twenty-first session: so loose a prior let the "
-        "first updates pull the ratios off and then hold them there (hu_selfocc20 runs 14 / "
-        "15: 0.03 off at a 1-sigma of 0.003, the ratios' NEES/dof 63 / 83, the whole state "
-        "1.38 over 20 runs); at 0.01 4.7 / 12.6 and 1.03, the ratios' RMSE lower on every "
-        "Hu case. 0.001 (0.75 / 3.1, 0.974) was too tight where the least squares' own "
-        "covariance is over-confident (the paper's Q with self-occlusion, run 7 of "
-        "tests/test_hu_consistency.py: the ratios' NEES/dof 72; 2.6 at 0.01); "
-        "docs/results/consistency.md, Hu section",
+        "end's least-squares covariance of the ratios",
     )
     p0_mass_centre_m: float = Field(0.5, gt=0, description="CM offset from the feature centroid")
     p0_velocity_m_s: float = Field(0.2, gt=0, description="initial 1-sigma of the velocity (m/s)")
