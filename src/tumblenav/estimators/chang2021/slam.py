@@ -347,7 +347,7 @@ def absorbed_walk(x: Array, tt: Array, Phi1: Array, walk: list[Array]) -> tuple[
     lam, V = np.linalg.eigh(G_shift)
     if lam.max() > cap:
         G_shift = (V * np.minimum(lam, cap)) @ V.T
-    return 0.5 * (G_rot + G_rot.T), 0.5 * (G_shift + G_shift.T)
+    return 0.5 * (G_rot + G_rot.T), G_shift
 
 
 def predicted_features(x: Array, s: Array) -> Array:
