@@ -281,6 +281,101 @@ def test_constrain_inertia_curvature_keeps_the_variance_along_the_gradient():
     assert g @ P2[0][ep, ep] @ g > 0.5 * v
 
 
+def _state_and_cov(rng, lay, p, scale=0.05):
+    x = np.concatenate(
+        [rot.IDENTITY, [0.1, -0.05, 0.08], p, rng.normal(0, 10, 6), rng.normal(size=6)]
+    )
+    L = rng.normal(0, scale, (lay.dim, lay.dim))
+    return x, L @ L.T + 1e-6 * np.eye(lay.dim)
+
+
+@settings(deadline=None)
+@given(a=second_moments, off=st.floats(-0.02, 0.02), seed=seeds, curvature=st.booleans())
+def test_project_inertia(a, off, seed, curvature):
+    """The projection lands on the surface, moves only the ratios (along the normal),
+    removes the covariance along the normal (with every cross term), keeps the tangent
+    plane's, sets back the curvature's variance, and leaves inactive runs alone."""
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(2)
+    p0 = ratios_of(a)
+    assume(np.all(np.abs(p0) < 0.9))
+    _, g0 = hu.inertia_constraint(p0, jac=True)
+    x, P = _state_and_cov(rng, lay, p0 + off * g0 / np.linalg.norm(g0))
+    sp, ep = lay.nom("inertia"), lay.err("inertia")
+    x1, P1 = hu.project_inertia(x[None], P[None], lay, curvature=curvature)
+    x1, P1 = x1[0], P1[0]
+    p1 = x1[sp]
+    assert abs(hu.inertia_constraint(p1)) < 1e-12
+    rest = np.ones(lay.nominal_dim, dtype=bool)
+    rest[sp] = False
+    np.testing.assert_array_equal(x1[rest], x[rest])
+    # the step is along the normal: nothing of it lies in the new tangent plane, to second
+    # order in the distance (the normal turns by O(off) over the step)
+    _, g = hu.inertia_constraint(p1, jac=True)
+    n = g / np.linalg.norm(g)
+    step = p1 - x[sp]
+    assert np.linalg.norm(step - (step @ n) * n) <= 5 * off**2 + 1e-14
+    np.testing.assert_array_equal(P1, P1.T)
+    assert np.linalg.eigvalsh(P1)[0] >= -1e-12 * np.abs(P1).max()
+    T = np.eye(3) - np.outer(n, n)
+    J = np.eye(lay.dim)
+    J[ep, ep] = T
+    expect = J @ P @ J.T
+    v = hu.curvature_variance(p1, expect[ep, ep]) if curvature else 0.0
+    expect[ep, ep] += v * np.outer(g, g) / (g @ g) ** 2
+    np.testing.assert_allclose(P1, expect, rtol=1e-10, atol=1e-15)
+    assert np.isclose(g @ P1[ep, ep] @ g, v, rtol=1e-6, atol=1e-14)
+    # runs that are not active are left alone
+    xb, Pb = np.stack([x, x]), np.stack([P, P])
+    x2, P2 = hu.project_inertia(xb, Pb, lay, active=np.array([True, False]), curvature=curvature)
+    np.testing.assert_array_equal(x2[0], x1)
+    np.testing.assert_array_equal(P2[0], P1)
+    np.testing.assert_array_equal(x2[1], x)
+    np.testing.assert_array_equal(P2[1], P)
+
+
+@given(a=second_moments, seed=seeds)
+def test_projection_equals_the_measurement_where_the_normal_is_uncorrelated(a, seed):
+    """On the surface, with the error along the normal uncorrelated with every other error
+    (the start's prior), projecting and the near-perfect pseudo-measurement agree: the
+    projection differs from the measurement only by the spurious tangent-normal correlation
+    that repeated linear updates build (project_inertia's docstring)."""
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(2)
+    p = ratios_of(a)
+    assume(np.all(np.abs(p) < 0.9))
+    _, g = hu.inertia_constraint(p, jac=True)
+    n = g / np.linalg.norm(g)
+    ep = lay.err("inertia")
+    x, P = _state_and_cov(rng, lay, p)
+    J = np.eye(lay.dim)
+    J[ep, ep] = np.eye(3) - np.outer(n, n)
+    P = J @ P @ J.T
+    P[ep, ep] += 0.05**2 * np.outer(n, n)  # the normal's own variance, uncorrelated
+    x_m, P_m = hu.constrain_inertia(x[None], P[None], lay, r=1e-14)
+    x_p, P_p = hu.project_inertia(x[None], P[None], lay, curvature=False)
+    np.testing.assert_allclose(x_p, x_m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(P_p, P_m, rtol=1e-8, atol=1e-12)
+
+
+@given(a=second_moments, off=st.floats(-0.02, 0.02), seed=seeds, curvature=st.booleans())
+def test_compiled_projection_equals_numpy(a, off, seed, curvature):
+    from tumblenav.estimators.hu2024 import kernels as _hu_kernel
+
+    rng = np.random.default_rng(seed)
+    lay = hu.layout(2)
+    p0 = ratios_of(a)
+    assume(np.all(np.abs(p0) < 0.9))
+    x, _ = _state_and_cov(rng, lay, p0 + off)
+    L = rng.normal(0, 0.05, (lay.dim + 3, lay.dim + 3))  # with the consider frame error's
+    P = L @ L.T + 1e-6 * np.eye(lay.dim + 3)  # rows and columns, as the kernel has them
+    x_n, P_n = hu.project_inertia(x[None], P[None], lay, curvature=curvature)
+    x_c, P_c = x.copy(), P.copy()
+    _hu_kernel._constrain(x_c, P_c, curvature, True)
+    np.testing.assert_allclose(x_c, x_n[0], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(P_c, P_n[0], rtol=1e-9, atol=1e-15)
+
+
 # --- discretisation (Hu 2024 eq. 38-39) --------------------------------------------------
 
 

@@ -51,6 +51,7 @@ from tumblenav.estimators.hu2024.model import (
     inertia_constraint,
     layout,
     noise_gain,
+    project_inertia,
     propagate_rotation,
 )
 from tumblenav.estimators.hu2024.tuning import (

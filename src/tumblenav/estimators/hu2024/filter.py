@@ -181,7 +181,8 @@ def run_filter(
                 t, sel(fe.p_L), np.ascontiguousarray(sel(fe.cov_L)), sel(fe.usable),
                 sel(fe.known_at), sel(fe.q_TI), R0, sel(fe.R_LI), k0, x0, P0, use_dpacf,
                 bool(tun.first_estimates_jacobian), tun.attitude_meas_every, tun.flip_epochs,
-                CONSTRAIN_EVERY, tun.constraint_curvature, MAX_RATE_RAD_S,
+                CONSTRAIN_EVERY, tun.constraint_curvature,
+                tun.constraint_update == "projection", MAX_RATE_RAD_S,
                 s_r2, Pht, Qt, tun.sigma_f2_m2_s * dt_nom,
                 _FLIPS, rot.matrix_to_quat(_FLIPS), p_every, _neutral_state(lay), r["x"],
                 r["P"], r["nis"], r["nis_dof"], r["diverged"], r["flips"], consider,
@@ -453,7 +454,10 @@ class HuSteps:
                     P = np.where(its[:, None, None], P2, P)
                     nis_k = np.where(its, nis2, nis_k)
         if started or k % CONSTRAIN_EVERY == 0:
-            x, P = constrain_inertia(x, P, lay, active, curvature=tun.constraint_curvature)
+            x, P = constrain_inertia(
+                x, P, lay, active, curvature=tun.constraint_curvature,
+                project=tun.constraint_update == "projection",
+            )  # fmt: skip
         if self.schmidt:  # u is considered, never updated: its covariance is the frame's
             d = lay.dim
             P[:, d:, d:] = np.nan_to_num(fe.cov_frame[:, k_used])

@@ -522,9 +522,69 @@ def _update(x, P, k, N, p_L, cov_L, usable, q_meas, R0, use_att, R_LI, f_lin, fe
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _constrain(x, P, curvature):
+def _project(x, P, curvature):
+    """``model.project_inertia`` for one run: the ratios moved onto c(p) = 0 along its normal
+    (three Newton steps), |p_i| <= 0.999, the covariance's ratio rows and columns projected
+    onto the tangent plane (T P T^T, T = I - n n^T), the curvature's variance set back."""
+    d = P.shape[0]
+    for _ in range(3):
+        px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+        c = px + py + pz + px * py * pz
+        g0, g1, g2 = 1 + py * pz, 1 + px * pz, 1 + px * py
+        s = c / (g0 * g0 + g1 * g1 + g2 * g2)
+        x[_NP] -= s * g0
+        x[_NP + 1] -= s * g1
+        x[_NP + 2] -= s * g2
+    for i in range(3):
+        x[_NP + i] = min(max(x[_NP + i], -0.999), 0.999)
+    px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+    g = np.array([1 + py * pz, 1 + px * pz, 1 + px * py])
+    gg = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+    n = g / np.sqrt(gg)
+    T = np.eye(3)
+    for a in range(3):
+        for b in range(3):
+            T[a, b] -= n[a] * n[b]
+    rows = np.empty((3, d))  # T P[p, :]
+    for a in range(3):
+        for j in range(d):
+            rows[a, j] = T[a, 0] * P[_SP, j] + T[a, 1] * P[_SP + 1, j] + T[a, 2] * P[_SP + 2, j]
+    for a in range(3):
+        for j in range(d):
+            P[_SP + a, j] = rows[a, j]
+    cols = np.empty((d, 3))  # P[:, p] T^T
+    for i in range(d):
+        for a in range(3):
+            cols[i, a] = P[i, _SP] * T[a, 0] + P[i, _SP + 1] * T[a, 1] + P[i, _SP + 2] * T[a, 2]
+    for i in range(d):
+        for a in range(3):
+            P[i, _SP + a] = cols[i, a]
+    if curvature:  # model.curvature_variance, set back along the gradient
+        C = np.array([[0.0, pz, py], [pz, 0.0, px], [py, px, 0.0]])
+        CP = _mm(C, P[_SP : _SP + 3, _SP : _SP + 3].copy())
+        tr = CP[0, 0] + CP[1, 1] + CP[2, 2]
+        v = 0.25 * tr * tr
+        for a in range(3):
+            for b in range(3):
+                v += 0.5 * CP[a, b] * CP[b, a]
+        for a in range(3):
+            for b in range(3):
+                P[_SP + a, _SP + b] += v * g[a] * g[b] / (gg * gg)
+    for i in range(d):
+        for j in range(i + 1, d):
+            v = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = v
+            P[j, i] = v
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _constrain(x, P, curvature, project=False):
     """``ekf_dpacf.constrain_inertia`` for one run: c(p) = px + py + pz + px py pz = 0 as a
-    near-perfect scalar pseudo-measurement, then |p_i| <= 0.999."""
+    near-perfect scalar pseudo-measurement, then |p_i| <= 0.999; with ``project``,
+    :func:`_project` instead."""
+    if project:
+        _project(x, P, curvature)
+        return
     d = P.shape[0]
     px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
     c = px + py + pz + px * py * pz
@@ -826,6 +886,7 @@ def run_filter_kernel(
     flip_need,
     constrain_every,
     curvature,
+    project,
     max_rate,
     s_r2,
     Pht,
@@ -991,7 +1052,7 @@ def run_filter_kernel(
                             use_att, R_LI[b], f_first, fej, x_it,
                         )  # fmt: skip
                 if start or k % constrain_every == 0:
-                    _constrain(x, P, curvature)
+                    _constrain(x, P, curvature, project)
                 if schmidt:  # u is considered, never updated: its covariance is the frame's
                     P[d:, d:] = C_used
                 if _diverged(x, P, N, max_rate):  # a run that blew up is stopped and counted

@@ -256,6 +256,7 @@ def constrain_inertia(
     active=None,
     r: float = 1e-10,
     curvature: bool = False,
+    project: bool = False,
 ):
     """Apply ``c(p) = 0`` as a (nearly) perfect scalar pseudo-measurement (Simon 2010, "estimate
     projection" by a Kalman update) and keep every ratio inside |p_i| < 1 (triangle inequality).
@@ -265,7 +266,15 @@ def constrain_inertia(
     set back to what the surface's curvature leaves (:func:`curvature_variance`): applied
     again and again as a perfect measurement it would shrink to ``r / n`` while the true
     error across the tangent plane is of the order of the tangent variance times the
-    curvature (measured: z-scores of 500 along the gradient, docs/results/hu2024.md)."""
+    curvature (measured: z-scores of 500 along the gradient, docs/results/hu2024.md).
+
+    With ``project`` (beyond Hu 2024 and Simon 2010's measurement form; issue 18), the
+    estimate is instead moved onto the surface along its normal (Newton steps on ``c``, the
+    other states untouched) and the error covariance projected onto the tangent plane,
+    ``P <- T P T^T`` with ``T = I - n n^T`` on the ratios' rows and columns: see
+    :func:`project_inertia`."""
+    if project:
+        return project_inertia(x, P, lay, active, curvature)
     sp = lay.nom("inertia")
     ep = lay.err("inertia")
     c, g = inertia_constraint(x[:, sp], jac=True)
@@ -287,6 +296,57 @@ def constrain_inertia(
         if active is not None:
             add = add * active[:, None, None]
         P[:, ep, ep] += add
+    return x, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def project_inertia(x: Array, P: Array, lay: StateLayout, active=None, curvature: bool = True):
+    """``c(p) = 0`` by projection (beyond Hu 2024; issue 18, the ratios' over-confidence).
+
+    The ratios' estimate goes to the nearest point of the surface (Newton steps along the
+    gradient ``g``, ``p <- p - c g / |g|^2``, three of them: ``c`` is cubic, and the step
+    is second order in the distance), the other states stay where they are; then
+    ``|p_i| <= 0.999``. The covariance loses the component along the unit normal
+    ``n = g / |g|``: ``P <- T P T^T``, ``T = I - n n^T`` on the ratios' rows and columns (the
+    cross-covariances with every other state included); with ``curvature`` the variance
+    that the surface's curvature leaves along the gradient is set back
+    (:func:`curvature_variance`), as in :func:`constrain_inertia`.
+
+    Why not the pseudo-measurement (Simon 2010's estimate projection by a Kalman update,
+    :func:`constrain_inertia`): between two applications the linear updates move the
+    ratios along the tangent plane, and the surface curves away from it, so ``c`` grows by
+    ``1/2 dp^T C dp``; they also build up covariance between the normal component (whose
+    variance is only the curvature's) and the tangent plane, correlation that the truth
+    does not have (the normal error ``1/2 dp^T C dp`` is uncorrelated with a Gaussian
+    ``dp``). A near-perfect measurement of ``c`` then moves the tangent components by that
+    spurious regression, ``-c P_tn / P_nn``: measured on hu_selfocc20, steps of 0.01 in
+    the ratios at each application while their sigma was 0.04, and ratios that end 0.03
+    off at a sigma of 0.003 (docs/results/consistency.md, twenty-second session). Where the
+    normal component is uncorrelated with the rest (the start: an isotropic prior), the
+    projection and the measurement agree (tests/test_ekf_dpacf.py)."""
+    sp = lay.nom("inertia")
+    ep = lay.err("inertia")
+    B = x.shape[0]
+    on = np.ones(B, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+    p = x[:, sp].copy()
+    for _ in range(3):
+        c, g = inertia_constraint(p, jac=True)
+        p = p - (c / np.sum(g * g, axis=1))[:, None] * g
+    p = np.clip(p, -0.999, 0.999)
+    x = x.copy()
+    x[:, sp] = np.where(on[:, None], p, x[:, sp])
+    _, g = inertia_constraint(x[:, sp], jac=True)
+    gg = np.sum(g * g, axis=1)
+    n = g / np.sqrt(gg)[:, None]
+    T = np.eye(3) - n[:, :, None] * n[:, None, :]
+    T = np.where(on[:, None, None], T, np.eye(3))
+    P = P.copy()
+    P[:, ep, :] = T @ P[:, ep, :]
+    P[:, :, ep] = P[:, :, ep] @ np.swapaxes(T, -1, -2)
+    if curvature:
+        v = curvature_variance(x[:, sp], P[:, ep, ep])
+        m = g / gg[:, None]  # g . (v m m^T) . g = v
+        add = v[:, None, None] * m[:, :, None] * m[:, None, :]
+        P[:, ep, ep] += add * on[:, None, None]
     return x, 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
