@@ -33,6 +33,7 @@ from tumblenav.estimators.hu2024.init import (
     _rotation_window,
     features_from_rotation,
     mass_centre_from_rotation,
+    mass_centre_prior,
     refine_start_pose,
 )
 from tumblenav.estimators.hu2024.model import (

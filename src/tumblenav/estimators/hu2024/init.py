@@ -134,6 +134,23 @@ def mass_centre_from_rotation(
     return c, cov_c
 
 
+# chi-square (3 dof, 99.9 %) of the joint fit's mass centre against mass_centre_prior
+MASS_CENTRE_GATE = 16.27
+
+
+def mass_centre_prior(g: Array, kn: NDArray[np.bool_], sigma_m: float) -> Array:
+    """(3,3) covariance of the mass centre about the catalogued features' centroid (in the
+    template's frame): their own spread about that centroid, the body's extent as far as
+    the features show it (the mass centre lies within the body, not near the features'
+    centroid: 8 features in +-2.5 m put it 1.4 m off on consistency/hu_occ30), plus
+    ``sigma_m``^2 (``p0_mass_centre_m``) per axis. Before issue 18's twenty-second
+    session it was ``sigma_m``^2 alone."""
+    pts = g[kn]
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    spread = np.cov(pts.T, bias=True) if len(pts) >= 2 else np.zeros((3, 3))
+    return spread + sigma_m**2 * np.eye(3)
+
+
 def features_from_rotation(
     fe: stereo_points.PointsFrontEnd,
     b: int,
@@ -141,6 +158,7 @@ def features_from_rotation(
     n_orbit: float,
     window_s: float = 30.0,
     q_t: float = 0.0,
+    prior_cov: Array | None = None,
 ) -> tuple[Array, Array, NDArray[np.bool_]] | None:
     """Joint batch least squares for the features about the mass centre (beyond Hu 2024).
 
@@ -159,6 +177,19 @@ def features_from_rotation(
     ``cov_f`` (3N,3N) in G, for the features seen in the window (``fitted``); or None when
     the mass centre is not determined (the 1-sigma of the features' common shift above
     0.5 m: too little rotation in the window) or too few points.
+
+    With ``prior_cov`` (3,3, in G; :func:`mass_centre_prior`, the body's extent about the
+    catalogued features' centroid) the fit is used with its own covariance however weakly
+    the rotation determines the mass centre, unless it puts the mass centre outside the
+    body (beyond ``MASS_CENTRE_GATE`` of the prior): the rotation barely shows it along
+    the spin axis (generalisation/g_slowrecede under the paper's q_t 2e-6: 1-sigma 0.55 m
+    at 54 s, 0.16 m at 200 s), and the 0.5 m rejection sent such runs to the centroid,
+    which is not the mass centre (1.4 m off on consistency/hu_occ30 with 8 features), and
+    the filter kept its mass centre 0.3-1.4 m off at a 1-sigma of 1-2 cm (issue 18,
+    twenty-second session). Fused with that prior instead, the fit's estimate moves
+    towards the centroid, and the filter was over-confident again (position NEES/dof
+    10-190 on four scenarios at the paper's Q against 0.4-8 unfused): the fit's
+    covariance, under the paper's random force, is the conservative one.
     """
     N = fe.usable.shape[2]
     window = _rotation_window(fe, b, k, n_orbit, window_s)
@@ -184,7 +215,14 @@ def features_from_rotation(
     # the features' common shift (a mass centre error) must be determined
     nf = len(idx)
     S = np.kron(np.ones((1, nf)) / nf, np.eye(3))
-    if np.sqrt(np.max(np.linalg.eigvalsh(S @ cov @ S.T))) > 0.5:
+    if prior_cov is not None:
+        # the mass centre the fit puts about the catalogued features' centroid (the
+        # features' mean about the mass centre is the template's about the centroid less
+        # that offset) must lie within the body: within the prior's 99.9 % ellipsoid
+        off = np.mean(g[idx], axis=0) - np.nanmean(g[kn], axis=0) - S @ f.ravel()
+        if off @ np.linalg.solve(prior_cov, off) > MASS_CENTRE_GATE:
+            return None
+    elif np.sqrt(np.max(np.linalg.eigvalsh(S @ cov @ S.T))) > 0.5:
         return None
     f_G = np.full((N, 3), np.nan)
     f_G[idx] = f
@@ -334,7 +372,8 @@ def _initial_state(
         kn = fe.known_at[b, k]  # catalogued by the start (causal)
         g = fe.template_at(k)[b]  # as known at the start
         gbar = np.nanmean(g[kn], axis=0)  # mass centre guess: the feature centroid
-        Sc = tun.p0_mass_centre_m**2 * np.eye(3)  # its covariance (in T)
+        prior_G = mass_centre_prior(g, kn, tun.p0_mass_centre_m)
+        Sc = R_TG @ prior_G @ R_TG.T  # its covariance (in T)
         joint = None  # (f_G, cov_f, fitted) of features_from_rotation
         if tun.mass_centre_init == "rotation":
             batch = mass_centre_from_rotation(fe, b, k, n_orbit, q_t=q_t)
@@ -343,7 +382,7 @@ def _initial_state(
                 floor = tun.p0_mass_centre_floor_m**2 * np.eye(3)
                 Sc = R_TG @ (cov_c + floor) @ R_TG.T
         elif tun.mass_centre_init == "joint":
-            joint = features_from_rotation(fe, b, k, n_orbit, q_t=q_t)
+            joint = features_from_rotation(fe, b, k, n_orbit, q_t=q_t, prior_cov=prior_G)
             if joint is not None:
                 fit_kn = joint[2] & kn
                 gbar = np.mean(g[fit_kn] - joint[0][fit_kn], axis=0)  # mass centre in G

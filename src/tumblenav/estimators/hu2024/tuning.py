@@ -43,7 +43,13 @@ class HuTuning(BaseModel):
         description="1-sigma of each ratio p at the start, added (ekf-dpacf) to the front "
         "end's least-squares covariance of the ratios",
     )
-    p0_mass_centre_m: float = Field(0.5, gt=0, description="CM offset from the feature centroid")
+    p0_mass_centre_m: float = Field(
+        0.5,
+        gt=0,
+        description="1-sigma per axis of the mass centre's offset from the catalogued features' "
+        "centroid, added to their spread about it (init.mass_centre_prior; the spread since "
+        "issue 18's twenty-second session): the start's prior, and the joint batch's",
+    )
     p0_velocity_m_s: float = Field(0.2, gt=0, description="initial 1-sigma of the velocity (m/s)")
     p0_unseen_feature_m: float = Field(
         3.0, gt=0, description="initial 1-sigma of features not yet seen (m)"
