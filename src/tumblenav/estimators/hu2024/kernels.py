@@ -559,17 +559,32 @@ def _project(x, P, curvature):
     for i in range(d):
         for a in range(3):
             P[i, _SP + a] = cols[i, a]
-    if curvature:  # model.curvature_variance, set back along the gradient
-        C = np.array([[0.0, pz, py], [pz, 0.0, px], [py, px, 0.0]])
-        CP = _mm(C, P[_SP : _SP + 3, _SP : _SP + 3].copy())
-        tr = CP[0, 0] + CP[1, 1] + CP[2, 2]
-        v = 0.25 * tr * tr
-        for a in range(3):
-            for b in range(3):
-                v += 0.5 * CP[a, b] * CP[b, a]
-        for a in range(3):
-            for b in range(3):
-                P[_SP + a, _SP + b] += v * g[a] * g[b] / (gg * gg)
+    if curvature:
+        _curvature_back(x, P)
+    _symmetrise(P)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _curvature_back(x, P):
+    """model.curvature_variance at the ratios in ``x``, set back along the gradient there."""
+    px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
+    C = np.array([[0.0, pz, py], [pz, 0.0, px], [py, px, 0.0]])
+    CP = _mm(C, P[_SP : _SP + 3, _SP : _SP + 3].copy())
+    tr = CP[0, 0] + CP[1, 1] + CP[2, 2]
+    v = 0.25 * tr * tr
+    for a in range(3):
+        for b in range(3):
+            v += 0.5 * CP[a, b] * CP[b, a]
+    g = np.array([1 + py * pz, 1 + px * pz, 1 + px * py])
+    gg = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+    for a in range(3):
+        for b in range(3):
+            P[_SP + a, _SP + b] += v * g[a] * g[b] / (gg * gg)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _symmetrise(P):
+    d = P.shape[0]
     for i in range(d):
         for j in range(i + 1, d):
             v = 0.5 * (P[i, j] + P[j, i])
@@ -603,24 +618,8 @@ def _constrain(x, P, curvature, project=False):
     for i in range(3):
         x[_NP + i] = min(max(x[_NP + i], -0.999), 0.999)
     if curvature:  # ekf_dpacf.curvature_variance, set back along the new gradient
-        px, py, pz = x[_NP], x[_NP + 1], x[_NP + 2]
-        C = np.array([[0.0, pz, py], [pz, 0.0, px], [py, px, 0.0]])
-        CP = _mm(C, P[_SP : _SP + 3, _SP : _SP + 3].copy())
-        tr = CP[0, 0] + CP[1, 1] + CP[2, 2]
-        v = 0.25 * tr * tr
-        for a in range(3):
-            for b in range(3):
-                v += 0.5 * CP[a, b] * CP[b, a]
-        g = np.array([1 + py * pz, 1 + px * pz, 1 + px * py])
-        gg = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
-        for a in range(3):
-            for b in range(3):
-                P[_SP + a, _SP + b] += v * g[a] * g[b] / (gg * gg)
-    for i in range(d):
-        for j in range(i + 1, d):
-            v = 0.5 * (P[i, j] + P[j, i])
-            P[i, j] = v
-            P[j, i] = v
+        _curvature_back(x, P)
+    _symmetrise(P)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
