@@ -186,6 +186,17 @@ def test_inertia_constraint_gradient(p):
     np.testing.assert_allclose(J, g[None, :], rtol=0, atol=1e-9)
 
 
+def _assert_inactive_run_left_alone(constrain, x, P, x1, P1, lay):
+    """``constrain`` on two runs, the second inactive: the first as alone (x1, P1), the
+    second untouched."""
+    xb, Pb = np.stack([x, x]), np.stack([P, P])
+    x2, P2 = constrain(xb, Pb, lay, active=np.array([True, False]))
+    np.testing.assert_array_equal(x2[0], x1)
+    np.testing.assert_array_equal(P2[0], P1)
+    np.testing.assert_array_equal(x2[1], x)
+    np.testing.assert_array_equal(P2[1], P)
+
+
 @given(
     quat,
     rate,
@@ -225,13 +236,9 @@ def test_constrain_inertia(q, w, a, direction, scale, seed):
     assert ev[0] >= -1e-12 * ev[-1]
     # the attitude stays a unit quaternion
     assert abs(np.linalg.norm(x1[lay.nom("attitude")]) - 1.0) < 1e-12
-    # runs that are not active are left alone
-    xb, Pb = np.stack([x, x]), np.stack([P, P])
-    x2, P2 = hu.constrain_inertia(xb, Pb, lay, active=np.array([True, False]), r=r)
-    np.testing.assert_array_equal(x2[0], x1)
-    np.testing.assert_array_equal(P2[0], P1)
-    np.testing.assert_array_equal(x2[1], x)
-    np.testing.assert_array_equal(P2[1], P)
+    _assert_inactive_run_left_alone(
+        lambda *a, **k: hu.constrain_inertia(*a, r=r, **k), x, P, x1, P1, lay
+    )
 
 
 @given(a=second_moments, seed=seeds, scale=st.floats(1e-3, 0.05))
@@ -325,13 +332,8 @@ def test_project_inertia(a, off, seed, curvature):
     expect[ep, ep] += v * np.outer(g, g) / (g @ g) ** 2
     np.testing.assert_allclose(P1, expect, rtol=1e-10, atol=1e-15)
     assert np.isclose(g @ P1[ep, ep] @ g, v, rtol=1e-6, atol=1e-14)
-    # runs that are not active are left alone
-    xb, Pb = np.stack([x, x]), np.stack([P, P])
-    x2, P2 = hu.project_inertia(xb, Pb, lay, active=np.array([True, False]), curvature=curvature)
-    np.testing.assert_array_equal(x2[0], x1)
-    np.testing.assert_array_equal(P2[0], P1)
-    np.testing.assert_array_equal(x2[1], x)
-    np.testing.assert_array_equal(P2[1], P)
+    project = lambda *a, **k: hu.project_inertia(*a, curvature=curvature, **k)  # noqa: E731
+    _assert_inactive_run_left_alone(project, x, P, x1, P1, lay)
 
 
 @given(a=second_moments, seed=seeds)
