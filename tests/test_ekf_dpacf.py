@@ -21,6 +21,7 @@ from tumblenav import rotations as rot
 from tumblenav.dynamics.integrators import discretise
 from tumblenav.dynamics.relative_orbit import cw_stm
 from tumblenav.estimators import ekf_dpacf as hu
+from tumblenav.estimators.hu2024.frame import turned_error_cov
 from tumblenav.evaluation import alignment
 from tumblenav.evaluation.metrics import chi2_bounds, nees
 from tumblenav.frontends.inertia import inertia_ratios, principal_frame, principal_moments
@@ -936,9 +937,96 @@ def test_compiled_turn_and_consider_cov_equal_numpy(seed, n_feat, half):
     out = np.empty_like(ref)
     Px = P[0].copy()  # the kernel adds the own error turned (issue 18) before _consider_cov
     _hu_kernel._turned_error(P[0], C, n_feat, Px)
-    _hu_kernel._consider_cov(x[0], Px, C, p_turn, mu, S, hu._FLIPS, n_feat, out)
+    no_xu = np.zeros((lay.dim, 3))
+    _hu_kernel._consider_cov(x[0], Px, no_xu, False, C, p_turn, mu, S, hu._FLIPS, n_feat, out)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-10)
+    # with the frame error as a consider parameter: the cross terms with u (P_xu)
+    Z = rng.normal(size=(lay.dim + 3, lay.dim + 3))
+    Z = Z @ Z.T
+    P, P_xu, C = (
+        Z[None, : lay.dim, : lay.dim],
+        Z[None, : lay.dim, lay.dim :],
+        Z[lay.dim :, lay.dim :],
+    )
+    ref = hu.frame_consider_cov(
+        x, P, C[None], lay, p_turn[None], mu[None], S[None], P_xu=P_xu
+    )[0]  # fmt: skip
+    Px = P[0].copy()
+    _hu_kernel._turned_error(P[0], C, n_feat, Px)
+    _hu_kernel._consider_cov(
+        x[0], Px, P_xu[0].copy(), True, C.copy(), p_turn, mu, S, hu._FLIPS, n_feat, out
+    )  # fmt: skip
+    np.testing.assert_allclose(out, ref, rtol=1e-10, atol=1e-9 * np.abs(ref).max())
     assert _hu_kernel.P_TURN_MIN == hu.P_TURN_MIN
+
+
+def _correlated_frame_error(rng, n_feat, deg, A_of):
+    """A state, a frame covariance ``C`` (``deg`` degrees per axis, correlated) and the
+    filter's error fully correlated with the frame error, ``eps = A u`` (``A = A_of(Ju)``):
+    ``P = A C A^T``, ``P_xu = A C``."""
+    lay, x = _random_state(rng, n_feat)
+    B = rng.normal(size=(3, 3))
+    C = np.radians(deg) ** 2 * (B @ B.T) / np.trace(B @ B.T) * 3
+    A = A_of(hu.frame_jacobian(x, lay)[0])
+    return lay, x, C, A, (A @ C @ A.T)[None], (A @ C)[None]
+
+
+def test_frame_consider_cov_cross_terms_are_the_second_moment_of_eps_plus_the_turn():
+    """With the filter's error regressed on the frame error (``eps = A u``, the consider
+    parameter's cross-covariance ``P_xu = A C``), the reported covariance is the second moment
+    of ``eps + D(u)``: against 200 000 draws at 8-degree frame errors, ``A = -Ju`` (the error
+    cancels the turn's first-order part, the case that made the first-order cross terms
+    ``Ju P_ux`` indefinite: hu_occ30 run 19, eigenvalues to -1.8e-6, NEES -4.5e3) and a random
+    ``A``; and the sum is positive semi-definite where the old form was not."""
+    rng = np.random.default_rng(31)
+    for A_of in (lambda Ju: -Ju, lambda Ju: rng.normal(size=Ju.shape)):
+        lay, x, C, A, P, P_xu = _correlated_frame_error(rng, 3, 8.0, A_of)
+        got = hu.frame_consider_cov(x, P, C[None], lay, P_xu=P_xu)[0]
+        u = rng.multivariate_normal(np.zeros(3), C, size=200_000)
+        R = rot.exp_map(u)
+        D = np.zeros((len(u), lay.dim))
+        D[:, :3] = u
+        D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
+        f = x[0, 16:].reshape(3, 3)
+        D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(len(u), -1)
+        e = u @ A.T + D
+        turned = turned_error_cov(P, C[None], lay)[0]  # the own error turned, added apart
+        sampled = e.T @ e / len(u) + turned
+        np.testing.assert_allclose(got, sampled, atol=0.02 * np.abs(sampled).max())
+        assert np.linalg.eigvalsh(got)[0] > -1e-12 * np.abs(got).max()
+    lay, x, C, A, P, P_xu = _correlated_frame_error(rng, 3, 8.0, lambda Ju: -Ju)
+    Ju = hu.frame_jacobian(x, lay)[0]
+    X = Ju @ P_xu[0].T  # the first-order cross terms used before
+    old = hu.frame_consider_cov(x, P, C[None], lay)[0] + X + X.T
+    assert np.linalg.eigvalsh(old)[0] < -1e-3 * np.abs(old).max()
+
+
+@given(seed=seeds, deg=st.floats(0.01, 20.0), n_feat=st.integers(1, 4))
+def test_frame_consider_cov_is_positive_semidefinite(seed, deg, n_feat):
+    """Any joint covariance of the filter's error and the frame error (near-fully correlated
+    included), any frame error up to 20 degrees, with the half turns' mixture: the reported
+    covariance has no negative eigenvalue beyond rounding (issue 18: a NEES must not be
+    negative)."""
+    rng = np.random.default_rng(seed)
+    lay, x = _random_state(rng, n_feat)
+    d = lay.dim
+    G = rng.normal(size=(d + 3, d + 3))
+    G[:, : d // 2] *= 1e-4  # nearly singular directions
+    Z = G @ G.T
+    Z[d:, :] *= np.radians(deg)
+    Z[:, d:] *= np.radians(deg)
+    if rng.uniform() < 0.5:  # the error exactly regressed on u
+        A = rng.normal(size=(d, 3))
+        Z[:d, :d] = A @ Z[d:, d:] @ A.T
+        Z[:d, d:] = A @ Z[d:, d:]
+        Z[d:, :d] = Z[:d, d:].T
+    p_turn = rng.uniform(0, 0.2, size=(1, 3))
+    mu = rng.normal(scale=np.radians(deg), size=(1, 3, 3))
+    B3 = rng.normal(scale=np.radians(deg), size=(1, 3, 3, 3))
+    S = B3 @ np.swapaxes(B3, -1, -2)
+    P, P_xu, C = Z[None, :d, :d], Z[None, :d, d:], Z[None, d:, d:]
+    got = hu.frame_consider_cov(x, P, C, lay, p_turn, mu, S, P_xu=P_xu)[0]
+    assert np.linalg.eigvalsh(got)[0] >= -1e-9 * np.abs(got).max()
 
 
 def test_frame_consider_cov_is_the_second_moment_of_the_turned_state():
@@ -1483,7 +1571,7 @@ def test_compiled_consider_state_pieces_equal_numpy(seed, a, dt):
     ``Phi_a P Phi_a^T + Q``, the carry-over between frames (``_frame_transition``), the cross
     terms of the report (``_cross_terms``) and the own error turned (``_turned_error``)."""
     from tumblenav.estimators.hu2024 import kernels as _hu_kernel
-    from tumblenav.estimators.hu2024.frame import frame_error_transition, turned_error_cov
+    from tumblenav.estimators.hu2024.frame import frame_error_transition
     from tumblenav.estimators.hu2024.model import frame_error_rate_jacobian
 
     rng = np.random.default_rng(seed)
@@ -1528,12 +1616,8 @@ def test_compiled_consider_state_pieces_equal_numpy(seed, a, dt):
         Ac = np.empty((3, 3))
         _hu_kernel._frame_transition(Co, Cn, Ac)
         np.testing.assert_allclose(Ac, An, rtol=1e-10, atol=1e-12)
-    # the report's cross terms and the turned own error
-    Pxu = P[:d, d:]
-    Ju = hu.frame_jacobian(x, lay)[0]
-    out = np.empty((d, d))
-    _hu_kernel._cross_terms(x[0], P, 2, d, out)
-    np.testing.assert_allclose(out, P[:d, :d] + Ju @ Pxu.T + Pxu @ Ju.T, rtol=1e-12, atol=1e-12)
+    # the turned own error (the report's cross terms with u: in
+    # test_compiled_turn_and_consider_cov_equal_numpy)
     C = B1 @ B1.T * 1e-4
     ref = turned_error_cov(P[None, :d, :d], C[None], lay)[0]
     out = np.zeros((d, d))
@@ -1568,7 +1652,6 @@ def test_turned_error_cov_is_the_second_moment_of_the_turned_error():
     independent frame error ``u ~ N(0, C)``: ``[u x] eps / 2`` on the attitude, ``[u x] eps``
     on the rate and each feature, nothing on the ratios, position and velocity; against
     200 000 samples (largest entry within 1.5 %)."""
-    from tumblenav.estimators.hu2024.frame import turned_error_cov
 
     rng = np.random.default_rng(3)
     lay = hu.layout(2)

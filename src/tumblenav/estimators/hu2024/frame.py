@@ -62,18 +62,20 @@ def _turn_nodes() -> tuple[Array, Array]:
 TURN_NODES, TURN_WEIGHTS = _turn_nodes()
 
 
-def _turn_moments(x: Array, mu: Array, S: Array, lay: StateLayout) -> tuple[Array, Array]:
-    """``E[D]`` (B, d) and ``E[D D^T]`` (B, d, d) of ``D(u) = turn(x, exp(u)) boxminus x =
-    [u; R(u) w - w; 0; 0; 0; R(u) f_i - f_i]`` for ``u ~ N(mu, S)`` (mu (B, 3), S (B, 3, 3)),
-    over the 27 nodes ``mu + L z`` (``S = L L^T``) of the Gauss-Hermite product rule
-    (:data:`TURN_NODES`).
+def _turn_moments(x: Array, mu: Array, S: Array, lay: StateLayout) -> tuple[Array, Array, Array]:
+    """``E[D]`` (B, d), ``E[D D^T]`` (B, d, d) and ``E[D u^T]`` (B, d, 3) of ``D(u) =
+    turn(x, exp(u)) boxminus x = [u; R(u) w - w; 0; 0; 0; R(u) f_i - f_i]`` for ``u ~ N(mu,
+    S)`` (mu (B, 3), S (B, 3, 3)), over the 27 nodes ``mu + L z`` (``S = L L^T``) of the
+    Gauss-Hermite product rule (:data:`TURN_NODES`).
 
     Its fourth moments are exact, the second moment of D's quadratic part ``[u x]^2 f / 2``
     with them, cross terms ``u_a u_b`` included. The six points ``mu +- sqrt(3) L e_i`` used
     before hold that part only along three directions: with the frame 1-2 degrees off
     (hu_occ30, at 25 m and features 2.5 m out) the quadratic part is ~1 mm of non-rigid
     shape, which the features' own covariance soon no longer covers (features NEES/dof 6.1
-    with six points, 0.69 with 27; issue 18)."""
+    with six points, 0.69 with 27; issue 18). ``E[D u^T]`` on the same nodes is the
+    statistical linearisation of ``D`` that :func:`frame_consider_cov` needs for the
+    cross terms with the filter's error (the rule is exact for ``E[u u^T] = S + mu mu^T``)."""
     B = x.shape[0]
     N = (lay.nominal_dim - lay.nom("features").start) // 3
     L = _chol3(np.nan_to_num(S))
@@ -87,7 +89,8 @@ def _turn_moments(x: Array, mu: Array, S: Array, lay: StateLayout) -> tuple[Arra
     f = x[:, lay.nom("features")].reshape(B, 1, N, 3)
     D[:, :, lay.err("features")] = (f @ np.swapaxes(R, -1, -2) - f).reshape(B, m, 3 * N)
     Dw = D * TURN_WEIGHTS[:, None]
-    return Dw.sum(axis=1), np.swapaxes(Dw, -1, -2) @ D
+    Dt = np.swapaxes(Dw, -1, -2)
+    return Dw.sum(axis=1), Dt @ D, Dt @ U
 
 
 def frame_consider_cov(
@@ -122,21 +125,31 @@ def frame_consider_cov(
     :func:`branch_mixture_cov`. With ``P_xu`` (B, d, 3), the filter's error's
     cross-covariance with ``u`` (the frame error carried as a consider parameter,
     ``frame_error_model: state``), the error ``eps + D(u)`` has the cross terms
-    ``Ju P_ux + P_xu Ju^T`` too (first order), also in the half turns' components. And
-    the filter's own error is turned by ``u`` too (:func:`turned_error_cov`)."""
+    ``A E[u D^T]`` and its transpose too, ``A = P_xu C^+`` (statistically linearised on the
+    rule's nodes, which keeps the sum positive semi-definite; the first order ``Ju P_ux``
+    did not), also in the half turns' components. And the filter's own error is turned by
+    ``u`` too (:func:`turned_error_cov`)."""
     B = x.shape[0]
     C = np.nan_to_num(cov_frame)
-    Pown = P
-    if P_xu is not None:
-        Ju = frame_jacobian(x, lay)
-        X = Ju @ np.swapaxes(P_xu, -1, -2)
-        P = P + X + np.swapaxes(X, -1, -2)
-    P = P + turned_error_cov(Pown, C, lay)
-    _, D2 = _turn_moments(x, np.zeros((B, 3)), C, lay)
+    P = P + turned_error_cov(P, C, lay)
+    _, D2, Du = _turn_moments(x, np.zeros((B, 3)), C, lay)
     out = P + D2
+    A = None
+    if P_xu is not None:
+        # the cross terms E[eps D^T] = A E[u D^T], A = P_xu C^+ (eps's regression on u), on
+        # the nodes of D2 itself: the sum is then P - A C A^T (>= 0 for a joint covariance
+        # [[P, P_xu], [P_ux, C]] >= 0) plus sum_s w_s (A u_s + D_s)(A u_s + D_s)^T, positive
+        # semi-definite. The first-order cross terms Ju P_ux used before are not: at the
+        # rule's nodes D falls short of Ju u by O(|u|^2) (R(u) w - w bends away from [u x] w)
+        # and where the filter's error and u are nearly fully correlated (after the frame's
+        # own re-solutions) that made the sum indefinite: eigenvalues to -1.8e-6 and NEES
+        # of -4.5e3 in hu_occ30 run 19 (issue 18, twenty-third session).
+        A = P_xu @ np.linalg.pinv(C)
+        X = A @ np.swapaxes(Du, -1, -2)
+        out = out + X + np.swapaxes(X, -1, -2)
     if p_turn is not None:
         assert mu_turn is not None and S_turn is not None  # the three come together
-        out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay)
+        out = branch_mixture_cov(x, P, out, p_turn, mu_turn, S_turn, lay, A=A, C=C)
     return out
 
 
@@ -174,7 +187,15 @@ def turned_error_cov(P: Array, C: Array, lay: StateLayout) -> Array:
 
 
 def branch_mixture_cov(
-    x: Array, P: Array, Pc: Array, p_turn: Array, mu_turn: Array, S_turn: Array, lay: StateLayout
+    x: Array,
+    P: Array,
+    Pc: Array,
+    p_turn: Array,
+    mu_turn: Array,
+    S_turn: Array,
+    lay: StateLayout,
+    A: Array | None = None,
+    C: Array | None = None,
 ) -> Array:
     """Second moment about the filter's estimate of the two-branch mixture (B, d, d): with
     probability ``p_a`` (``frontends.inertia.branch_statistics``) the truth lies on the
@@ -191,7 +212,13 @@ def branch_mixture_cov(
     So the covariance about the estimate (the mode) is ``(1 - sum p_a) Pc + sum_a p_a (J_a
     (P + E[D D^T]) J_a + M_a + v E[D]^T J_a + J_a E[D] v^T)``, ``M_a`` the average over the
     two signs of ``Delta Delta^T`` (``pi^2 e_a e_a^T`` on the attitude plus ``v v^T``, ``v``
-    the non-attitude part), turns with ``p_a <= P_TURN_MIN`` left out."""
+    the non-attitude part), turns with ``p_a <= P_TURN_MIN`` left out. With ``A`` (B, d, 3),
+    the filter's error's regression on the frame error (``eps = A u + e``, ``Cov(e) = P - A
+    C A^T``, ``C`` (B, 3, 3) the frame's covariance; :func:`frame_consider_cov`), ``eps`` is
+    not independent of the turned branch's ``u``: ``P + E[D D^T]`` becomes the second moment
+    of ``eps + D``, ``P - A C A^T + E[(A u + D)(A u + D)^T]`` (on the rule's nodes), and
+    ``E[D]`` becomes ``A mu_a + E[D]``: each component a second moment, the mixture positive
+    semi-definite."""
     N = (lay.nominal_dim - lay.nom("features").start) // 3
     sa = lay.err("attitude")
     out = Pc.copy()
@@ -210,9 +237,17 @@ def branch_mixture_cov(
         v = np.zeros((len(sel), lay.dim))
         v[:, lay.err("rate")] = w @ F.T - w
         v[:, lay.err("features")] = (f @ F.T - f).reshape(len(sel), -1)
-        m1, m2 = _turn_moments(xs, mu_turn[sel, a], S_turn[sel, a], lay)
+        mu, S = mu_turn[sel, a], S_turn[sel, a]
+        m1, m2, Du = _turn_moments(xs, mu, S, lay)
+        M = P[sel] + m2
+        if A is not None and C is not None:
+            As = A[sel]
+            Euu = S + mu[:, :, None] * mu[:, None, :]
+            X = As @ np.swapaxes(Du, -1, -2)  # E[eps D^T] = A E[u D^T]
+            M = M + As @ (Euu - C[sel]) @ np.swapaxes(As, -1, -2) + X + np.swapaxes(X, -1, -2)
+            m1 = m1 + (As @ mu[:, :, None])[..., 0]
         Jm = m1 * sg
-        comp = (P[sel] + m2) * np.outer(sg, sg) + v[:, :, None] * v[:, None, :]
+        comp = M * np.outer(sg, sg) + v[:, :, None] * v[:, None, :]
         comp += v[:, :, None] * Jm[:, None, :] + Jm[:, :, None] * v[:, None, :]
         comp[:, sa.start + a, sa.start + a] += np.pi**2
         out[sel] += p_turn[sel, a, None, None] * (comp - Pc[sel])

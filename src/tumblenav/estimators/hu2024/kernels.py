@@ -339,35 +339,6 @@ def _frame_transition(Co, Cn, A):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _cross_terms(x, P, N, d, out):
-    """``out`` (d, d) = ``P[:d, :d] + Ju P_ux + P_xu Ju^T``: the filter's covariance with the
-    cross terms of its error and the frame error u (``frame.frame_consider_cov``'s
-    ``P_xu``), ``Ju`` = :func:`frame.frame_jacobian` (I on the attitude, ``-[omega x]`` on
-    the rate, ``-[f_i x]`` on each feature)."""
-    X = np.zeros((d, d))  # Ju P_ux
-    nb = 2 + N
-    Sk = np.zeros((3, 3))
-    for blk in range(nb):
-        if blk == 0:
-            o = _SA
-            Sk[:, :] = 0.0
-            Sk[0, 0] = Sk[1, 1] = Sk[2, 2] = 1.0
-        else:
-            o = _SW if blk == 1 else _SF + 3 * (blk - 2)
-            on = _NW if blk == 1 else _NF + 3 * (blk - 2)
-            vx, vy, vz = x[on], x[on + 1], x[on + 2]
-            Sk[0, 0], Sk[0, 1], Sk[0, 2] = 0.0, vz, -vy  # -[v x]
-            Sk[1, 0], Sk[1, 1], Sk[1, 2] = -vz, 0.0, vx
-            Sk[2, 0], Sk[2, 1], Sk[2, 2] = vy, -vx, 0.0
-        for a in range(3):
-            for j in range(d):
-                X[o + a, j] = Sk[a, 0] * P[d, j] + Sk[a, 1] * P[d + 1, j] + Sk[a, 2] * P[d + 2, j]
-    for i in range(d):
-        for j in range(d):
-            out[i, j] = P[i, j] + X[i, j] + X[j, i]
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _turned_error(P, C, N, out):
     """``frame.turned_error_cov`` of one run, added to ``out`` (d, d): block ``(a, b)`` of
     the turned blocks (attitude with 1/2, rate, features) gains ``s_a s_b sum_mn C_mn E_m
@@ -756,10 +727,10 @@ _TURN_Z, _TURN_W = TURN_NODES.copy(), TURN_WEIGHTS.copy()  # frame._turn_moments
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _turn_points(x, mu, S, N, D):
-    """``ekf_dpacf._turn_moments``' nodes for one run: ``D[s]`` (27, 2 + N, 3) =
-    ``[u; R(u) w - w; R(u) f_i - f_i]`` at ``u = mu + L z_s`` (``S = L L^T``, ``z_s`` the
-    Gauss-Hermite nodes ``frame.TURN_NODES``, weights ``_TURN_W``)."""
+def _turn_points(x, mu, S, N, D, U):
+    """``frame._turn_moments``' nodes for one run: ``U[s]`` (27, 3) = ``mu + L z_s`` (``S =
+    L L^T``, ``z_s`` the Gauss-Hermite nodes ``frame.TURN_NODES``, weights ``_TURN_W``) and
+    ``D[s]`` (27, 2 + N, 3) = ``[u; R(u) w - w; R(u) f_i - f_i]`` there."""
     L = np.empty((3, 3))
     _chol3(S, L)
     u = np.empty(3)
@@ -769,6 +740,7 @@ def _turn_points(x, mu, S, N, D):
         for a in range(3):
             u[a] = mu[a] + L[a, 0] * _TURN_Z[sp, 0] + L[a, 1] * _TURN_Z[sp, 1]
             u[a] += L[a, 2] * _TURN_Z[sp, 2]
+            U[sp, a] = u[a]
         exp_quat(u, qu)
         quat_to_matrix(qu, Ru)
         for a in range(3):
@@ -782,12 +754,36 @@ def _turn_points(x, mu, S, N, D):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
-    """``ekf_dpacf.frame_consider_cov`` for one run: out = Pc = P plus the second moment,
-    over the 27 Gauss-Hermite nodes of the frame error ``u ~ N(0, C)``, of ``D(u) = [u; R(u) w - w;
-    0; 0; 0; R(u) f_i - f_i]``; then the half turns' mixture ``ekf_dpacf.branch_mixture_cov``
-    (probabilities ``p_turn``, the frame error given each turn ``N(mu_turn[t], S_turn[t])``)."""
-    out[:, :] = P
+def _node_moments(D, U, offs, m1, m2, EuD):
+    """Over the nodes of :func:`_turn_points`: ``m1 = E[D]`` (d), ``m2 = E[D D^T]`` (d, d)
+    and ``EuD = E[u D^T]`` (3, d), on the attitude, rate and feature entries (the others 0)."""
+    m1[:] = 0.0
+    m2[:, :] = 0.0
+    EuD[:, :] = 0.0
+    nb = offs.shape[0]
+    for sp in range(D.shape[0]):
+        w = _TURN_W[sp]
+        for bi in range(nb):
+            oi = offs[bi]
+            for a in range(3):
+                da = D[sp, bi, a] * w
+                m1[oi + a] += da
+                for c in range(3):
+                    EuD[c, oi + a] += da * U[sp, c]
+                for bj in range(nb):
+                    oj = offs[bj]
+                    for c in range(3):
+                        m2[oi + a, oj + c] += da * D[sp, bj, c]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _consider_cov(x, P, Pxu, cross, C, p_turn, mu_turn, S_turn, flips, N, out):
+    """``frame.frame_consider_cov`` for one run: out = Pc = P plus the second moment, over the
+    27 Gauss-Hermite nodes of the frame error ``u ~ N(0, C)``, of ``D(u) = [u; R(u) w - w;
+    0; 0; 0; R(u) f_i - f_i]``; with ``cross`` the cross terms ``A E[u D^T]`` and their
+    transpose, ``A = Pxu C^+`` (``Pxu`` (d, 3), the consider parameter's cross-covariance);
+    then the half turns' mixture ``frame.branch_mixture_cov`` (probabilities ``p_turn``, the
+    frame error given each turn ``N(mu_turn[t], S_turn[t])``)."""
     nb = 2 + N
     d = P.shape[0]
     offs = np.empty(nb, dtype=np.int64)
@@ -796,23 +792,27 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
         offs[blk] = _SW if blk == 1 else _SF + 3 * (blk - 2)
     ns = _TURN_Z.shape[0]
     D = np.zeros((ns, nb, 3))
-    _turn_points(x, np.zeros(3), C, N, D)
-    for sp in range(ns):
-        for bi in range(nb):
-            oi = offs[bi]
-            for a in range(3):
-                da = D[sp, bi, a] * _TURN_W[sp]
-                for bj in range(nb):
-                    oj = offs[bj]
-                    for c in range(3):
-                        out[oi + a, oj + c] += da * D[sp, bj, c]
+    U = np.zeros((ns, 3))
+    m1 = np.zeros(d)
+    m2 = np.zeros((d, d))
+    EuD = np.zeros((3, d))
+    A = np.zeros((d, 3))
+    _turn_points(x, np.zeros(3), C, N, D, U)
+    _node_moments(D, U, offs, m1, m2, EuD)
+    if cross:
+        Ci = np.linalg.pinv(C)
+        for i in range(d):
+            for c in range(3):
+                A[i, c] = Pxu[i, 0] * Ci[0, c] + Pxu[i, 1] * Ci[1, c] + Pxu[i, 2] * Ci[2, c]
+    X = _mm(A, EuD)  # A E[u D^T]: zero without cross
+    for i in range(d):
+        for j in range(d):
+            out[i, j] = P[i, j] + m2[i, j] + X[i, j] + X[j, i]
     if not (p_turn[0] > P_TURN_MIN or p_turn[1] > P_TURN_MIN or p_turn[2] > P_TURN_MIN):
         return
     Pc = out.copy()
     sg = np.ones(d)
     v = np.zeros(d)
-    m1 = np.zeros(d)
-    m2 = np.zeros((d, d))
     for t in range(3):
         pt = p_turn[t]
         if not pt > P_TURN_MIN:
@@ -820,7 +820,6 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
         for i in range(d):
             sg[i] = 1.0
             v[i] = 0.0
-            m1[i] = 0.0
         for blk in range(nb):  # J_t = diag(sg); v = F w - w, F f_i - f_i (F diagonal)
             for a in range(3):
                 sg[offs[blk] + a] = flips[t, a, a]
@@ -828,21 +827,24 @@ def _consider_cov(x, P, C, p_turn, mu_turn, S_turn, flips, N, out):
             o = _NW if blk == 1 else _NF + 3 * (blk - 2)
             for a in range(3):
                 v[offs[blk] + a] = (flips[t, a, a] - 1.0) * x[o + a]
-        # E[D] and E[D D^T] given the turn (only the attitude, rate and feature entries)
-        _turn_points(x, mu_turn[t], S_turn[t], N, D)
-        for i in range(d):
-            for j in range(d):
-                m2[i, j] = 0.0
-        for sp in range(ns):
-            for bi in range(nb):
-                oi = offs[bi]
-                for a in range(3):
-                    da = D[sp, bi, a] * _TURN_W[sp]
-                    m1[oi + a] += da
-                    for bj in range(nb):
-                        oj = offs[bj]
-                        for c in range(3):
-                            m2[oi + a, oj + c] += da * D[sp, bj, c]
+        # E[D], E[D D^T], E[u D^T] given the turn (only the attitude, rate and feature entries)
+        mu = mu_turn[t]
+        _turn_points(x, mu, S_turn[t], N, D, U)
+        _node_moments(D, U, offs, m1, m2, EuD)
+        if cross:  # eps = A u + e: E[(eps + D)(eps + D)^T] and E[eps + D] given the turn
+            E = S_turn[t] - C
+            for a in range(3):
+                for c in range(3):
+                    E[a, c] += mu[a] * mu[c]
+            AE = _mm(A, E)
+            X = _mm(A, EuD)
+            for i in range(d):
+                m1[i] += A[i, 0] * mu[0] + A[i, 1] * mu[1] + A[i, 2] * mu[2]
+                for j in range(d):
+                    m2[i, j] += (
+                        AE[i, 0] * A[j, 0] + AE[i, 1] * A[j, 1] + AE[i, 2] * A[j, 2]
+                        + X[i, j] + X[j, i]
+                    )  # fmt: skip
         for i in range(d):
             jm_i = sg[i] * m1[i]
             for j in range(d):
@@ -1066,15 +1068,14 @@ def run_filter_kernel(
             report = active and k % p_every == 0
             if report:
                 if consider:
-                    Px = np.empty((d, d))
-                    if schmidt:  # the cross terms with u (frame.frame_consider_cov's P_xu)
-                        _cross_terms(x, P, N, d, Px)
-                    else:
-                        Px[:, :] = P
+                    Px = P[:d, :d].copy()
                     _turned_error(P, C_used, N, Px)  # the filter's own error turned by u
+                    # with the frame error as a consider parameter, the cross terms with u
+                    # (frame.frame_consider_cov's P_xu; zeros and unused without)
+                    Pxu = P[:d, d:].copy() if schmidt else np.zeros((d, 3))
                     _consider_cov(
-                        x, Px, C_used, p_turn[b, k_used], mu_turn[b, k_used], S_turn[b, k_used],
-                        flips, N, P_rep,
+                        x, Px, Pxu, schmidt, C_used, p_turn[b, k_used], mu_turn[b, k_used],
+                        S_turn[b, k_used], flips, N, P_rep,
                     )  # fmt: skip
                 else:
                     P_rep[:, :] = P
