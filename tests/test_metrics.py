@@ -135,6 +135,26 @@ def test_consistency_of_gaussian_errors_is_inside_bounds():
     # a covariance 30% too small is detected
     bad = metrics.consistency(values * 1.3, d, t, window)
     assert bad["mean"] > bad["bounds95"][1] and bad["inside_fraction"] == 0.0
+    assert "negative_epochs" not in res and "negative_epochs" not in bad
+
+
+def test_consistency_counts_negative_values_and_the_summary_warns():
+    """A NEES below zero comes from a covariance that is not positive semi-definite (a
+    defect, hu_occ30 before the twenty-third session: -4.5e3 among values near 1): counted in
+    the window only, and ``assess`` says so."""
+    from tumblenav import pipeline
+
+    t = np.arange(10.0)
+    values = np.ones((3, 10)) * 6.0
+    values[0, 1] = -50.0  # before the window: not counted
+    values[1, 6] = -4.5e3
+    values[2, 8] = -0.1
+    res = metrics.consistency(values, 6, t, (5.0, 9.0))
+    assert res["negative_epochs"] == 2
+    lines = pipeline.assess({"runs": 3, "nees": res})
+    assert any(
+        "NEES is negative at 2 epoch(s)" in w and "not positive semi-definite" in w for w in lines
+    )
 
 
 def test_consistency_with_varying_dof_and_missing_values():

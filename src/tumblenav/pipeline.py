@@ -544,6 +544,15 @@ def assess(summary: dict[str, Any]) -> list[str]:
                 f"mean {name.upper()}/dof {c['mean']:.3g} is {side} its 95% bounds "
                 f"[{lo:.3g}, {hi:.3g}]: {meaning[(name, side)]}"
             )
+        negative = (summary.get(name) or {}).get("negative_epochs")
+        if negative:
+            which = "state covariance" if name == "nees" else "innovation covariance"
+            out.append(
+                f"{name.upper()} is negative at {negative} epoch(s) of the window: the "
+                f"estimator's reported {which} is not positive semi-definite there, so "
+                f"its mean {name.upper()} cannot be read (a defect of the estimator: please "
+                "report it)"
+            )
     runs = summary.get("runs") or 0
     if summary.get("note"):
         out.append(summary["note"])

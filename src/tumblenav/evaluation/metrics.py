@@ -216,8 +216,10 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
     Returns ``mean`` (time average in the window of the run-averaged normalised value),
     ``dof``, ``bounds95`` (for an average over the number of runs: Bar-Shalom's average NEES,
     ``R`` runs' sum is chi2(``R dof``) at each time; ``R`` the median over the window of the
-    runs with a value) and ``inside_fraction`` (fraction of window times whose run-average
-    lies inside the bounds).
+    runs with a value), ``inside_fraction`` (fraction of window times whose run-average
+    lies inside the bounds) and, only when there are any, ``negative_epochs``: the (run,
+    time) values in the window below zero, which no positive semi-definite covariance gives
+    (a defect of the estimator's reported covariance, not noise: the mean cannot be read).
 
     The bounds are exact for the run average at one time, hence for ``inside_fraction``. For
     ``mean``, a time average over correlated epochs, they are conservative: its own 95%
@@ -242,12 +244,16 @@ def consistency(values: Array, dof: Array | int, t: Array, window: tuple[float, 
     runs = max(1, int(np.round(np.median(counts[np.isfinite(per_t)]))))
     lo, hi = chi2_bounds(dof_typ, runs)
     finite = per_t[np.isfinite(per_t)]
-    return {
+    out = {
         "mean": float(np.mean(finite)),
         "dof": dof_typ,
         "bounds95": [lo, hi],
         "inside_fraction": float(np.mean((finite >= lo) & (finite <= hi))),
     }
+    negative = int(np.sum(norm[:, m] < 0.0))
+    if negative:
+        out["negative_epochs"] = negative
+    return out
 
 
 def branch_counts(branches: Iterable[str]) -> dict[str, int]:
