@@ -219,3 +219,18 @@ def test_a_workers_warnings_are_printed_as_the_command_prints_its_own(capsys):
         warnings.showwarning = previous
     err = capsys.readouterr().err
     assert err == "warning: no usable GP for feature(s) [1, 2]: pure propagation\n"
+
+
+def test_an_exit_that_hangs_after_the_interruption_still_ends_with_its_status():
+    """After an interruption the command's exit may wait on a pool's thread without a time
+    limit (concurrent.futures' exit hook); the watchdog ends the process with the interrupted
+    status instead. Here a thread that never ends stands for it."""
+    code = (
+        "import threading, time\n"
+        "from tumblenav import cli\n"
+        "threading.Thread(target=time.sleep, args=(3600,)).start()  # not a daemon: exit waits\n"
+        "cli._exit_within(0.5, 130)\n"
+        "raise SystemExit(130)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
