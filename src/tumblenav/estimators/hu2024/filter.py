@@ -491,7 +491,10 @@ def filter_view(
     every = stereo_points.FrontEndSettings().ls_every
     n = fe.cov_frame.shape[1]
     C = np.nan_to_num(fe.cov_frame[:, ::every], nan=1e6)
-    sig = np.repeat(np.sqrt(np.linalg.eigvalsh(C)[..., -1]), every, axis=1)[:, :n]
+    sig = np.sqrt(np.linalg.eigvalsh(C)[..., -1])
+    if fe.frame_gate is not None:  # the residuals' excess over the model (front end)
+        sig = sig * np.nan_to_num(fe.frame_gate[:, ::every], nan=1.0)
+    sig = np.repeat(sig, every, axis=1)[:, :n]
     keep = sig < max_sigma_rad
     view = dataclasses.replace(
         fe,

@@ -158,7 +158,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
          bounds[v + 1], fd, cGv)
         for v, (Rv, cGv, om, cf, cw, fd) in enumerate(vers[:-1])
     ]  # fmt: skip
-    R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios = identify_and_dpacf(
+    R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios, frame_gate = identify_and_dpacf(
         om_ls,
         np.trace(cw_ls, axis1=-2, axis2=-1) / 3.0,
         R_ls,
@@ -190,6 +190,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         cov_TI=cov_TI,
         cov_frame=cov_frame,
         cov_ratios=cov_ratios,
+        frame_gate=frame_gate,
         skipped=skipped,
         cov_omega=cov_w,
         template_history=history if len(history) > 1 else None,

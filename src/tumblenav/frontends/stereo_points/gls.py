@@ -103,7 +103,8 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
     covariance of ``r``'s noise from the rates' noise, the expected sum of the whitened rows' squared noise,
     ``E`` (B,S), and the noise's expected share of N, r and bb, ``Nc`` (B,S,8,8), ``rc``
     (B,S,8), ``bbc`` (B,S) (the rates' noise in the rows' own terms: errors in variables),
-    and ``M`` (B,S,8,8), the covariance of ``r``'s noise from the momentum's random walk."""
+    and ``M`` (B,S,8,8), the covariance of ``r``'s noise from the momentum's random walk;
+    last, ``Ew`` (B,S), the random walk's share of ``E``."""
     B, n = ok.shape
     nS = sel.shape[0]
     L = coef.shape[2]  # 2h + 1
@@ -115,6 +116,7 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
     cnt = np.zeros((B, nS), dtype=np.int64)
     Vo = np.zeros((B, nS, 8, 8))
     Eo = np.zeros((B, nS))
+    Ewo = np.zeros((B, nS))
     Mo = np.zeros((B, nS, 8, 8))
     Nco = np.zeros((B, nS, 8, 8))
     rco = np.zeros((B, nS, 8))
@@ -152,6 +154,7 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
         bbc = 0.0
         bb = 0.0
         Esum = 0.0
+        Ewalk = 0.0
         cc = 0
         zmax = -1  # highest attitude epoch whose Z slot is initialised
         j = 0
@@ -183,6 +186,7 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
                         for q in range(3):
                             LL += Lj[p, q] ** 2
                     Esum += A0 * LL  # the momentum's walk since the first row (diagonal)
+                    Ewalk += A0 * LL
                     # errors in variables: the row's noise is Linv I_bar(X) d_omega, so
                     # E[da^T da]_kk' = tr(E_k P E_k' C), P = Linv^T Linv, C = P^-1
                     P = Lj.T @ Lj
@@ -233,10 +237,11 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
             Vo[bi, si] = V
             Mo[bi, si] = M
             Eo[bi, si] = Esum
+            Ewo[bi, si] = Ewalk
             Nco[bi, si] = Nc
             rco[bi, si] = rc
             bbco[bi, si] = bbc
-    return N, r, bbo, cnt, Vo, Eo, Nco, rco, bbco, Mo
+    return N, r, bbo, cnt, Vo, Eo, Nco, rco, bbco, Mo, Ewo
 
 
 def fit_coefficients(h: int) -> tuple[np.ndarray, np.ndarray]:

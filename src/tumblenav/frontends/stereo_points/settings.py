@@ -141,6 +141,10 @@ class PointsFrontEnd:
     cov_frame: Array  # (B,n,3,3) the slowly varying part: error of the DPACF frame T in G
     cov_ratios: Array  # (B,n,3,3) covariance of the inertia ratios p (Hu 2024 eq. 19)
     skipped: dict[str, Array] = field(default_factory=dict)  # name -> (B,) counts
+    # (B,n) the factor (>= 1) on the frame's sigma in the thresholds on it (the front end's
+    # max_dpacf_sigma_rad, the filter's view): sqrt of the residuals' excess over the least
+    # squares' noise model (inertia_ls._residual_scale); None: 1
+    frame_gate: Array | None = None
     cov_omega: Array | None = None  # (B,n,3,3) rad^2/s^2, full covariance of omega_G
     # the template's refinements (template_refine_s): (from epoch (B,), template (B,N,3))
     # for each version in order, the first from epoch 0, the last being template_G (a
