@@ -1313,9 +1313,10 @@ def test_joint_features_with_free_attitudes_is_honest_under_correlated_attitude_
 def test_residual_scale_inflates_only_beyond_what_the_model_allows():
     """``inertia_ls._residual_scale``: the residuals' ratio to what the noise model expects
     scales the covariance only beyond its 95 % quantile under the model; that quantile is
-    near 1 where the rows' own noise dominates (many degrees of freedom) and about 2 where
-    the momentum's random walk does (7.5); the gate is always sqrt(max(ratio, 1))."""
-    from tumblenav.frontends.stereo_points.inertia_ls import WALK_DOF, _residual_scale
+    near 1 where the rows' own noise dominates (many degrees of freedom), about 2 where the
+    momentum's random walk does over three axes (7.5) and 2.7 over one (2.5); the gate is
+    always sqrt(max(ratio, 1))."""
+    from tumblenav.frontends.stereo_points.inertia_ls import WALK_DOF_PER_AXIS, _residual_scale
 
     ratio = np.array([0.5, 1.2, 1.6, 2.5, 5.0])
     expect = np.ones_like(ratio)
@@ -1323,20 +1324,22 @@ def test_residual_scale_inflates_only_beyond_what_the_model_allows():
     white, gate = _residual_scale(ratio, expect, np.zeros_like(ratio), rows, 21)
     np.testing.assert_allclose(white, [1.0, 1.2, 1.6, 2.5, 5.0])
     np.testing.assert_allclose(gate, np.sqrt([1.0, 1.2, 1.6, 2.5, 5.0]))
-    walk, _ = _residual_scale(ratio, expect, expect, rows, 21)
-    q95 = stats.chi2.ppf(0.95, WALK_DOF) / WALK_DOF
+    walk, _ = _residual_scale(ratio, expect, expect, rows, 21, 3.0)
+    q95 = stats.chi2.ppf(0.95, 3 * WALK_DOF_PER_AXIS) / (3 * WALK_DOF_PER_AXIS)
     assert 1.9 < q95 < 2.0
     np.testing.assert_allclose(walk, [1.0, 1.0, 1.0, 2.5, 5.0])
+    one_axis, _ = _residual_scale(ratio, expect, expect, rows, 21, 1.0)
+    np.testing.assert_allclose(one_axis, [1.0, 1.0, 1.0, 1.0, 5.0])
 
 
 def test_walk_dof_is_that_of_a_brownian_motion_less_its_mean():
-    """WALK_DOF: the squared norm of a Brownian motion less its mean over the window has
+    """WALK_DOF_PER_AXIS: the squared norm of a Brownian motion less its mean over the window has
     (sum 1/(pi k)^2)^2 / sum 1/(pi k)^4 = 2.5 degrees of freedom per axis (2 E^2 / Var),
     against 4000 seeded simulated walks of 2000 steps."""
-    from tumblenav.frontends.stereo_points.inertia_ls import WALK_DOF
+    from tumblenav.frontends.stereo_points.inertia_ls import WALK_DOF_PER_AXIS
 
     rng = np.random.default_rng(7)
     W = np.cumsum(rng.standard_normal((4000, 2000)), axis=1)
     s = np.sum((W - W.mean(axis=1, keepdims=True)) ** 2, axis=1)
     dof = 2 * s.mean() ** 2 / s.var()
-    assert abs(dof - WALK_DOF / 3) < 0.15, dof
+    assert abs(dof - WALK_DOF_PER_AXIS) < 0.15, dof

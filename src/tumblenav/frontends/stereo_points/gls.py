@@ -104,7 +104,8 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
     ``E`` (B,S), and the noise's expected share of N, r and bb, ``Nc`` (B,S,8,8), ``rc``
     (B,S,8), ``bbc`` (B,S) (the rates' noise in the rows' own terms: errors in variables),
     and ``M`` (B,S,8,8), the covariance of ``r``'s noise from the momentum's random walk;
-    last, ``Ew`` (B,S), the random walk's share of ``E``."""
+    last, ``Ew`` (B,S), the random walk's share of ``E``, and ``Sw`` (B,S,3,3), that share per
+    axis of the momentum (in I): ``Ew = tr(Sw)``."""
     B, n = ok.shape
     nS = sel.shape[0]
     L = coef.shape[2]  # 2h + 1
@@ -117,6 +118,8 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
     Vo = np.zeros((B, nS, 8, 8))
     Eo = np.zeros((B, nS))
     Ewo = np.zeros((B, nS))
+    Swo = np.zeros((B, nS, 3, 3))
+    Sw = np.zeros((3, 3))
     Mo = np.zeros((B, nS, 8, 8))
     Nco = np.zeros((B, nS, 8, 8))
     rco = np.zeros((B, nS, 8))
@@ -155,6 +158,7 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
         bb = 0.0
         Esum = 0.0
         Ewalk = 0.0
+        Sw[:, :] = 0.0
         cc = 0
         zmax = -1  # highest attitude epoch whose Z slot is initialised
         j = 0
@@ -191,6 +195,9 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
                     # E[da^T da]_kk' = tr(E_k P E_k' C), P = Linv^T Linv, C = P^-1
                     P = Lj.T @ Lj
                     Cw = np.linalg.inv(P)
+                    if A0 > 0.0:  # the walk's share per axis of I: A0 R^T P R
+                        Rj = R_GI[bi, j]
+                        Sw += A0 * (Rj.T @ P @ Rj)
                     for k in range(6):
                         PEC[k] = P @ Eb[k] @ Cw
                     for k in range(5):
@@ -238,10 +245,11 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
             Mo[bi, si] = M
             Eo[bi, si] = Esum
             Ewo[bi, si] = Ewalk
+            Swo[bi, si] = Sw
             Nco[bi, si] = Nc
             rco[bi, si] = rc
             bbco[bi, si] = bbc
-    return N, r, bbo, cnt, Vo, Eo, Nco, rco, bbco, Mo, Ewo
+    return N, r, bbo, cnt, Vo, Eo, Nco, rco, bbco, Mo, Ewo, Swo
 
 
 def fit_coefficients(h: int) -> tuple[np.ndarray, np.ndarray]:

@@ -84,7 +84,7 @@ def identify_and_dpacf(
     sel = np.unique(held)
     cG_rows = cov_G if cov_G_rows is None else cov_G_rows
     rows = _gls_rows(omega_G, var_w, R_GI, cov_w, cG_rows, fit, s, dt)
-    N, r, bb, cnt, V, E, Nc, rc, M, Ew = _version_sums(rows, omega_G, R_GI, s, dt, delay, sel)
+    N, r, bb, cnt, V, E, Nc, rc, M, Ew, Sw = _version_sums(rows, omega_G, R_GI, s, dt, delay, sel)
     for item in before or []:
         om_o, var_o, R_o, cw_o, k_from, k_to = item[:6]
         fit_o = item[6] if len(item) > 6 else None
@@ -101,17 +101,17 @@ def identify_and_dpacf(
         # the sums of a solution before k_to cover epochs up to k_to - h - 1 < m only
         so = _version_sums(rows_o, om_o[:, :m], R_o[:, :m], s, dt, delay, se)
         use = (se[None, :] >= k_from[:, None]) & (se[None, :] < k_to[:, None])  # (B, S_early)
-        for full, part in zip((N, r, bb, cnt, V, E, Nc, rc, M, Ew), so, strict=True):
+        for full, part in zip((N, r, bb, cnt, V, E, Nc, rc, M, Ew, Sw), so, strict=True):
             u = use.reshape(use.shape + (1,) * (part.ndim - 2))
             full[:, early] = np.where(u, part, full[:, early])
     return _solve_and_dpacf(N, r, bb, cnt, sel, held, s,
                             R_GI if R_GI_report is None else R_GI_report, cov_G, V, E,
-                            Nc, rc, M, Ew)  # fmt: skip
+                            Nc, rc, M, Ew, Sw)  # fmt: skip
 
 
 def _version_sums(rows, omega_G, R_GI, s, dt, delay, sel):
     """The sums of one version's rows at epochs ``sel`` (``gls.gls_sums_at``): N, r, bb,
-    cnt, V, E, Nc, rc, M, Ew. Causality: the rate at epoch j uses attitudes up to j + h, so
+    cnt, V, E, Nc, rc, M, Ew, Sw. Causality: the rate at epoch j uses attitudes up to j + h, so
     epoch k may only use the sums up to k - delay (compiled loop)."""
     n = omega_G.shape[1]
     N, r, _, cnt = _points_kernel.normal_equations_at(
@@ -210,7 +210,22 @@ def _ls_rows(
 
 
 def _solve_and_dpacf(
-    N, r, bb, cnt, sel, held, s, R_GI, cov_G, V=None, E=None, Nc=None, rc=None, M=None, Ew=None
+    N,
+    r,
+    bb,
+    cnt,
+    sel,
+    held,
+    s,
+    R_GI,
+    cov_G,
+    V=None,
+    E=None,
+    Nc=None,
+    rc=None,
+    M=None,
+    Ew=None,
+    Sw=None,
 ):
     """identify_and_dpacf from the least-squares sums at the solved epochs ``sel``."""
     d = np.sqrt(np.maximum(np.diagonal(N, axis1=-2, axis2=-1), 1e-300))
@@ -252,13 +267,20 @@ def _solve_and_dpacf(
         if s.rate_noise == "independent":
             V = N  # each row's noise independent of the others' (see FrontEndSettings)
         walk = np.zeros_like(rss)
+        axes = np.ones_like(rss)
         if M is not None:
             V = V + M
             if Ew is not None:  # the momentum's walk's share of the expected residuals
                 walk = Ew - np.trace(Ninv @ M, axis1=-2, axis2=-1)
+            if Sw is not None:  # over how many of the momentum's axes it is spread
+                tr = np.trace(Sw, axis1=-2, axis2=-1)
+                tr2 = np.sum(Sw * Sw, axis=(-2, -1))
+                axes = np.where(tr2 > 0, tr**2 / np.where(tr2 > 0, tr2, 1.0), 1.0)
         cov_X = Ninv @ V @ Ninv
         expect = E - np.trace(Ninv @ V, axis1=-2, axis2=-1)
-        scale, gate = _residual_scale(rss, expect, walk, 3 * cnt - 8, 2 * s.rate_half_window + 1)
+        scale, gate = _residual_scale(
+            rss, expect, walk, 3 * cnt - 8, 2 * s.rate_half_window + 1, axes
+        )
         cov_X = scale[..., None, None] * cov_X
     cov_l = cov_X[..., :5, :5]
     I_G = _inertia_from_l(X[..., :5])
@@ -323,39 +345,43 @@ def _solve_and_dpacf(
     return R_GT, moments, q_TI, cov_TI, cov_phi, cov_p, gate
 
 
-# The effective degrees of freedom of the residuals' share from the momentum's random walk:
-# a Brownian motion less its mean over the window (the momentum column fits the mean) has the
-# Karhunen-Loeve variances 1 / (pi k)^2, k = 1, 2, ..., so its squared norm has
-# (sum 1/(pi k)^2)^2 / sum 1/(pi k)^4 = (1/6)^2 / (1/90) = 2.5 degrees of freedom per axis.
-WALK_DOF = 3 * 2.5
+# The effective degrees of freedom of the residuals' share from the momentum's random walk, per
+# axis of the momentum: a Brownian motion less its mean over the window (the momentum column
+# fits the mean) has the Karhunen-Loeve variances 1 / (pi k)^2, k = 1, 2, ..., so its squared
+# norm has (sum 1/(pi k)^2)^2 / sum 1/(pi k)^4 = (1/6)^2 / (1/90) = 2.5 degrees of freedom.
+WALK_DOF_PER_AXIS = 2.5
 
 
 def _residual_scale(
-    rss: Array, expect: Array, walk: Array, rows: Array, corr_rows: int
+    rss: Array, expect: Array, walk: Array, rows: Array, corr_rows: int, axes: Array | float = 3.0
 ) -> tuple[Array, Array]:
     """The least squares' residual scale (beyond Hu 2024): ``(scale, gate)``, the factor on
     the reported covariance and the factor on the frame's sigma in the thresholds on it.
 
     ``rss / expect`` estimates how much the rows' noise model understates their noise. Its
     spread under the right model depends on what the residuals hold: the momentum's random
-    walk (``walk`` of ``expect``) has :data:`WALK_DOF` degrees of freedom whatever the window,
-    the rows' own noise ``rows / corr_rows`` (rows correlated over the rate fit's window):
-    ``Var(rss) / expect^2 = 2 (w^2 / WALK_DOF + (1 - w)^2 / nu_rows)``, ``w = walk /
-    expect``. Where the walk dominates the ratio varies by a factor of about 4 from run to
-    run (hu_occ20 runs 0-2, medians over the solutions 0.58, 2.17, 0.62), and ``max(ratio,
-    1)``, applied until the twenty-third session, kept only the upward draws: the frame and
-    everything turned by it conservative (hu_occ20 attitude NEES/dof 0.66, without the scale
-    0.94). So the covariance is scaled by the ratio only where it exceeds its 95 % quantile
-    under the model (a misfit detected; ``chi2(nu) / nu`` with ``nu = 2 / (Var(rss) /
-    expect^2)``); where the rows' own noise dominates that quantile is near 1 and the scale
-    is the ratio as before (torque-free synthetic frames, tests/test_frontends.py). The gate
-    keeps ``sqrt(max(ratio, 1))``: a frame waits until it is good enough even under the
-    excess (on hu_conv30 frames trusted sooner ended a run on the half-turn branch)."""
+    walk (``walk`` of ``expect``) has :data:`WALK_DOF_PER_AXIS` degrees of freedom per axis
+    it is spread over (``axes``, 1-3: the participation ratio ``tr(S)^2 / tr(S^2)`` of its
+    share per axis ``S``, gls' ``Sw``; the whitening and the rows' turning weigh the axes
+    unequally) whatever the window, the rows' own noise ``rows / corr_rows`` (rows
+    correlated over the rate fit's window): ``Var(rss) / expect^2 = 2 (w^2 / nu_walk + (1 -
+    w)^2 / nu_rows)``, ``w = walk / expect``. Where the walk dominates the ratio varies by a
+    factor of several from run to run (hu_occ20's 20 runs, late solutions: 0.25-3.0, an
+    effective 5.3 degrees of freedom; hu_occ30's 4.3), and ``max(ratio, 1)``, applied until
+    the twenty-third session, kept only the upward draws: the frame and everything turned by
+    it conservative (hu_occ20 attitude NEES/dof 0.66, without the scale 0.94). So the
+    covariance is scaled by the ratio only where it exceeds its 95 % quantile under the model
+    (a misfit detected; ``chi2(nu) / nu`` with ``nu = 2 / (Var(rss) / expect^2)``); where the
+    rows' own noise dominates that quantile is near 1 and the scale is the ratio as before
+    (torque-free synthetic frames, tests/test_frontends.py). The gate keeps ``sqrt(max(ratio,
+    1))``: a frame waits until it is good enough even under the excess (on hu_conv30 frames
+    trusted sooner ended a run on the half-turn branch)."""
     e = np.maximum(expect, 1e-30)
     ratio = rss / e
     w = np.clip(walk / e, 0.0, 1.0)
+    nu_walk = WALK_DOF_PER_AXIS * np.clip(axes, 1.0, 3.0)
     nu_rows = np.maximum(np.asarray(rows, float) / max(corr_rows, 1), 1.0)
-    rel_var = 2.0 * (w**2 / WALK_DOF + (1.0 - w) ** 2 / nu_rows)
+    rel_var = 2.0 * (w**2 / nu_walk + (1.0 - w) ** 2 / nu_rows)
     nu = 2.0 / np.maximum(rel_var, 1e-12)
     q95 = stats.chi2.ppf(0.95, nu) / nu
     scale = np.where(ratio > q95, ratio, 1.0)
