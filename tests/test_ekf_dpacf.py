@@ -846,6 +846,19 @@ def _random_state(rng: np.random.Generator, n_feat: int) -> tuple:
     return lay, x
 
 
+def _sampled_turns(rng, x, lay, C, size=200_000):
+    """Draws ``u ~ N(0, C)`` of the frame error and ``D(u) = turn(x, exp(u)) boxminus x``
+    (attitude, rate, features; the other blocks 0) of one state, and its features (N, 3)."""
+    u = rng.multivariate_normal(np.zeros(3), C, size=size)
+    R = rot.exp_map(u)
+    D = np.zeros((size, lay.dim))
+    D[:, :3] = u
+    D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
+    f = x[0, 16:].reshape(-1, 3)
+    D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(size, -1)
+    return u, D, f
+
+
 @given(seed=seeds, which=st.integers(0, 2), need=st.integers(1, 4))
 def test_compiled_branch_following_equals_numpy(seed, which, need):
     """A DPACF attitude a half turn away for ``need`` epochs turns the state (q, omega, f, P)
@@ -982,13 +995,7 @@ def test_frame_consider_cov_cross_terms_are_the_second_moment_of_eps_plus_the_tu
     for A_of in (lambda Ju: -Ju, lambda Ju: rng.normal(size=Ju.shape)):
         lay, x, C, A, P, P_xu = _correlated_frame_error(rng, 3, 8.0, A_of)
         got = hu.frame_consider_cov(x, P, C[None], lay, P_xu=P_xu)[0]
-        u = rng.multivariate_normal(np.zeros(3), C, size=200_000)
-        R = rot.exp_map(u)
-        D = np.zeros((len(u), lay.dim))
-        D[:, :3] = u
-        D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
-        f = x[0, 16:].reshape(3, 3)
-        D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(len(u), -1)
+        u, D, f = _sampled_turns(rng, x, lay, C)
         e = u @ A.T + D
         turned = turned_error_cov(P, C[None], lay)[0]  # the own error turned, added apart
         sampled = e.T @ e / len(u) + turned
@@ -1043,13 +1050,7 @@ def test_frame_consider_cov_is_the_second_moment_of_the_turned_state():
     small = hu.frame_consider_cov(x, P, 1e-8 * C[None], lay)[0]
     np.testing.assert_allclose(small, Ju @ (1e-8 * C) @ Ju.T, rtol=1e-6, atol=1e-14)
     C = np.radians(10.0) ** 2 * C
-    u = rng.multivariate_normal(np.zeros(3), C, size=200_000)
-    D = np.zeros((len(u), lay.dim))
-    D[:, :3] = u
-    R = rot.exp_map(u)
-    D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
-    f = x[0, 16:].reshape(3, 3)
-    D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(len(u), -1)
+    u, D, f = _sampled_turns(rng, x, lay, C)
     ut = hu.frame_consider_cov(x, P, C[None], lay)[0]
     np.testing.assert_allclose(ut, D.T @ D / len(u), atol=0.02 * np.abs(ut).max())
     # the mean of D from the sigma points: (1/6) sum_s D_s, against the sample mean
@@ -1072,13 +1073,7 @@ def test_frame_consider_cov_holds_the_quadratic_part_of_the_turn():
     C = np.radians(3.0) ** 2 * np.diag([1.0, 0.6, 0.8])
     Ju = hu.frame_jacobian(x, lay)[0]
     Pi = np.eye(lay.dim) - Ju @ np.linalg.pinv(Ju)  # the part no first-order turn explains
-    u = rng.multivariate_normal(np.zeros(3), C, size=200_000)
-    R = rot.exp_map(u)
-    D = np.zeros((len(u), lay.dim))
-    D[:, :3] = u
-    D[:, 3:6] = (R @ x[0, 4:7]) - x[0, 4:7]
-    f = x[0, 16:].reshape(4, 3)
-    D[:, 15:] = (f @ np.swapaxes(R, -1, -2) - f).reshape(len(u), -1)
+    u, D, f = _sampled_turns(rng, x, lay, C)
     sampled = Pi @ (D.T @ D / len(u)) @ Pi
     ut = Pi @ hu.frame_consider_cov(x, P, C[None], lay)[0] @ Pi
     scale = np.abs(sampled).max()
