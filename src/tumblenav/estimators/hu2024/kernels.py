@@ -847,10 +847,28 @@ def _consider_cov(x, P, Pxu, cross, C, p_turn, mu_turn, S_turn, flips, N, out):
                     )  # fmt: skip
         for i in range(d):
             jm_i = sg[i] * m1[i]
+            att_i = _SA <= i < _SA + 3
             for j in range(d):
-                comp = sg[i] * sg[j] * (P[i, j] + m2[i, j]) + v[i] * v[j]
-                comp += v[i] * sg[j] * m1[j] + jm_i * v[j]
+                if att_i or _SA <= j < _SA + 3:
+                    comp = 0.0  # the attitude: below
+                else:
+                    comp = sg[i] * sg[j] * (P[i, j] + m2[i, j]) + v[i] * v[j]
+                    comp += v[i] * sg[j] * m1[j] + jm_i * v[j]
                 out[i, j] += pt * (comp - Pc[i, j])
+        # the attitude's block: (pi / 2)^2 [e_t x] (P + E[D D^T])_att [e_t x]^T (frame.py)
+        Ka = np.zeros((3, 3))
+        Ma = np.empty((3, 3))
+        for a in range(3):
+            for c in range(3):
+                Ma[a, c] = P[_SA + a, _SA + c] + m2[_SA + a, _SA + c]
+        t1, t2 = (t + 1) % 3, (t + 2) % 3  # [e_t x]: e_t1 -> e_t2, e_t2 -> -e_t1
+        Ka[t2, t1] = 0.5 * math.pi
+        Ka[t1, t2] = -0.5 * math.pi
+        KM = _mm(Ka, Ma)
+        for a in range(3):
+            for c in range(3):
+                s = KM[a, 0] * Ka[c, 0] + KM[a, 1] * Ka[c, 1] + KM[a, 2] * Ka[c, 2]
+                out[_SA + a, _SA + c] += pt * s
         out[_SA + t, _SA + t] += pt * math.pi * math.pi
 
 
