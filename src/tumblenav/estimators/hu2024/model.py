@@ -289,14 +289,22 @@ def constrain_inertia(
     clip = np.clip(x[:, sp], -0.999, 0.999)
     x[:, sp] = clip if active is None else np.where(active[:, None], clip, x[:, sp])
     if curvature:
-        _, g1 = inertia_constraint(x[:, sp], jac=True)
-        v = curvature_variance(x[:, sp], P[:, ep, ep])
-        n = g1 / np.sum(g1 * g1, axis=1, keepdims=True)  # g1 . (v n n^T) . g1 = v
-        add = v[:, None, None] * n[:, :, None] * n[:, None, :]
-        if active is not None:
-            add = add * active[:, None, None]
-        P[:, ep, ep] += add
+        _curvature_back(x, P, lay, active)
     return x, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def _curvature_back(x: Array, P: Array, lay: StateLayout, active=None) -> None:
+    """In place: the variance :func:`curvature_variance` leaves along the constraint's
+    gradient ``g`` at the ratios in ``x``, set back on ``P`` (``v m m^T``, ``m = g / |g|^2``,
+    so that ``g . (v m m^T) . g = v``); runs where ``active`` is False are left alone."""
+    sp, ep = lay.nom("inertia"), lay.err("inertia")
+    _, g = inertia_constraint(x[:, sp], jac=True)
+    v = curvature_variance(x[:, sp], P[:, ep, ep])
+    m = g / np.sum(g * g, axis=1, keepdims=True)
+    add = v[:, None, None] * m[:, :, None] * m[:, None, :]
+    if active is not None:
+        add = add * np.asarray(active)[:, None, None]
+    P[:, ep, ep] += add
 
 
 def project_inertia(x: Array, P: Array, lay: StateLayout, active=None, curvature: bool = True):
@@ -343,10 +351,7 @@ def project_inertia(x: Array, P: Array, lay: StateLayout, active=None, curvature
     P[:, ep, :] = T @ P[:, ep, :]
     P[:, :, ep] = P[:, :, ep] @ np.swapaxes(T, -1, -2)
     if curvature:
-        v = curvature_variance(x[:, sp], P[:, ep, ep])
-        m = g / gg[:, None]  # g . (v m m^T) . g = v
-        add = v[:, None, None] * m[:, :, None] * m[:, None, :]
-        P[:, ep, ep] += add * on[:, None, None]
+        _curvature_back(x, P, lay, on)
     return x, 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
