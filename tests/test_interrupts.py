@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tumblenav import cli
 from tumblenav.campaign import runner
 from tumblenav.campaign.store import CampaignStore
 from tumblenav.cli import main
@@ -234,3 +235,48 @@ def test_an_exit_that_hangs_after_the_interruption_still_ends_with_its_status():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 130, proc.stderr
+
+
+_TWICE = (
+    "import os, signal, sys, time\n"
+    "from tumblenav import cli\n"
+    "from tumblenav.errors import Interrupted\n"
+    "cli._install_signal_handlers()\n"
+    "try:\n"
+    "    os.kill(os.getpid(), signal.SIGINT)\n"
+    "    time.sleep(5)\n"
+    "except Interrupted:\n"
+    "    pass\n"
+    "time.sleep({gap})\n"
+    "os.kill(os.getpid(), signal.SIGINT)\n"
+    "time.sleep(0.2)\n"
+    "print('cleanup finished', flush=True)\n"
+    "raise SystemExit(130)\n"
+)
+
+
+def test_one_interruption_delivered_twice_still_runs_the_cleanup():
+    """GNU timeout signals the process, then its process group (the process again): the copy,
+    microseconds later, is the same interruption, so the cleanup runs and prints its message
+    (it used to end the process at once, silently, in 2 of 6 tries)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _TWICE.format(gap=0.0)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 130, proc.stderr
+    assert "cleanup finished" in proc.stdout
+    assert "interrupted again" not in proc.stderr
+
+
+def test_a_second_interruption_ends_the_process_at_once_and_says_so():
+    proc = subprocess.run(
+        [sys.executable, "-c", _TWICE.format(gap=2 * cli.SAME_INTERRUPTION_S)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 130, proc.stderr
+    assert "cleanup finished" not in proc.stdout
+    assert "interrupted again (SIGINT): stopping at once" in proc.stderr
