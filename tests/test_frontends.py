@@ -835,6 +835,45 @@ def test_full_covariance_alignment_is_consistent_and_beats_kabsch(rng_m):
     assert np.median(np.linalg.norm(o_f - o, axis=1)) < np.sqrt(cov[0, 0, 1, 1])
 
 
+def test_alignment_states_the_points_own_noise_apart_from_the_templates_errors():
+    """``weighted_kabsch``'s ``noise``: the share of the G attitude's covariance from the
+    points' own noise (the sandwich ``A^-1 B A^-1``). One template error held fixed and 2000
+    draws of the points' noise: the fits scatter about the template's bias with that
+    covariance (NEES of the centred errors inside the chi-square bounds), while the whole
+    covariance, which also states the template's errors, is larger; with no template error
+    stated both are the same."""
+    from tumblenav.evaluation.metrics import chi2_bounds
+    from tumblenav.frontends.stereo_points import weighted_kabsch
+
+    rng = np.random.default_rng(1)
+    M, K = 2000, 6
+    g1, p1, cov1, R1, o1 = _stereo_like_points(rng, 1, K, 17.0, 2e-5)
+    lat2 = (17.0 * 2e-5) ** 2
+    T = np.broadcast_to(8.0 * lat2 * np.eye(3), (M, K, 3, 3)).copy()  # template's, in G
+    g_err = g1[0] + rng.normal(size=(K, 3)) * np.sqrt(8.0 * lat2)  # one template error
+    C = cov1[0, 0]
+    p = (g1[0] @ R1[0].T + o1[0]) + rng.normal(size=(M, K, 3)) @ np.sqrt(C)
+    g = np.broadcast_to(g_err, (M, K, 3)).copy()
+    cov = np.broadcast_to(C, (M, K, 3, 3)).copy()
+    w = np.ones((M, K)) / np.trace(C)
+    noise: dict = {}
+    R_f, _, cov_G, ok = weighted_kabsch(p, g, w, cov, T, noise=noise)
+    assert ok.all()
+    e = Rotation.from_matrix(np.swapaxes(R_f, -1, -2) @ R1[0].T).as_rotvec()  # in C
+    e = e - e.mean(axis=0)  # the template's bias, common to every draw
+    cov_n = np.swapaxes(R_f, -1, -2) @ noise["cov_G"] @ R_f  # back to C
+    nees = np.einsum("mi,mij,mj->m", e, np.linalg.inv(cov_n), e)
+    lo, hi = chi2_bounds(3, M)
+    assert lo <= np.mean(nees) / 3 <= hi, np.mean(nees) / 3
+    # the whole covariance states the template's errors too
+    assert np.all(np.linalg.eigvalsh(cov_G - noise["cov_G"]) > 0)
+    assert np.trace(cov_G[0]) > 2.0 * np.trace(noise["cov_G"][0])
+    # no template error stated: the two are the same
+    noise0: dict = {}
+    _, _, cov_G0, _ = weighted_kabsch(p[:50], g[:50], w[:50], cov[:50], noise=noise0)
+    assert np.allclose(noise0["cov_G"], cov_G0, rtol=1e-4, atol=0)
+
+
 def test_alignment_warm_start_and_its_fallback():
     """A run of epochs: each fit starts from the previous one; an epoch whose points are
     inconsistent with any rigid fit (one point 1 m off at 1 mm noise) fails the chi-square
@@ -854,7 +893,7 @@ def test_alignment_warm_start_and_its_fallback():
     cov = np.broadcast_to(1e-6 * np.eye(3), (n, K, 3, 3)).copy()
     w = np.ones((n, K))
     gg = np.broadcast_to(g, (n, K, 3)).copy()
-    Ro, oo, ct, ok, refined = _points_kernel.align_rigid(
+    Ro, oo, ct, ok, refined, _ = _points_kernel.align_rigid(
         p, gg, cov, np.zeros((1, K, 3, 3)), w, 4, n
     )
     assert ok.tolist() == [True, True, True, True, False, True]
@@ -1195,6 +1234,47 @@ def _synthetic_frames(q_truth, q_model, rate_noise, B=40, sig=2e-4, seed=1):
             v.append(e @ np.linalg.solve(cov_phi[b, k], e) / 3)
         out.append(float(np.mean(v)))
     return out
+
+
+def test_errors_in_variables_take_the_rates_zero_mean_noise():
+    """The inertia least squares' bias compensation (``gls``'s ``Nc``, ``rc``) takes the
+    regressors' noise from ``cov_w_noise`` (``rates.rates_noise_cov``: the points' own noise
+    through the rate fit), not from the whitening, which also states the template's errors
+    (on hu_selfocc run 173 that compensation removed more than all of the information along
+    one direction and the moments jumped to (1, 0.19, -0.10)): the compensation scales with
+    it, the sums do not; and for attitudes whose whole covariance is their own noise,
+    ``rates_noise_cov`` is the rate fit's covariance."""
+    from tumblenav.frontends import stereo_points
+    from tumblenav.frontends.stereo_points import inertia_ls, rates
+
+    n, dt, h = 80, 0.5, 4
+    s = stereo_points.FrontEndSettings(rate_half_window=h)
+    t = np.arange(n) * dt
+    om = np.stack([0.1 + 0.02 * np.sin(0.3 * t), 0.05 * np.cos(0.2 * t), 0.03 + 0 * t], -1)[None]
+    R = Rotation.random(n, random_state=4).as_matrix()[None]
+    A = np.array([[1.0, 0.3, -0.2], [0.0, 1.2, 0.4], [0.0, 0.0, 0.7]])
+    cov_w = np.broadcast_to(A @ A.T * 1e-6, (1, n, 3, 3)).copy()  # correlated axes
+    cov_G = np.broadcast_to(1e-6 * np.eye(3), (1, n, 3, 3)).copy()
+    var_w = np.trace(cov_w, axis1=-2, axis2=-1) / 3
+    sel = np.array([n - 1])
+    sums = []
+    for cn in (None, cov_w, 3.0 * cov_w):
+        rows = inertia_ls._gls_rows(om, var_w, R, cov_w, cov_G, None, s, dt, cn)
+        sums.append(inertia_ls._version_sums(rows, om, R, s, dt, 0, sel))
+    N0, Nc0, rc0 = sums[0][0], sums[0][6], sums[0][7]
+    assert np.abs(Nc0).max() > 0 and np.abs(rc0).max() > 0
+    assert np.allclose(sums[1][6], Nc0) and np.allclose(sums[1][7], rc0)  # the default
+    assert np.allclose(sums[2][6], 3.0 * Nc0) and np.allclose(sums[2][7], 3.0 * rc0)
+    assert np.array_equal(sums[2][0], N0) and np.array_equal(sums[2][1], sums[0][1])
+    # rates_noise_cov: the fit's covariance where the attitudes' noise is all there is
+    q = rot.exp_quat(np.cumsum(np.broadcast_to([0.02, 0.01, -0.01], (n, 3)), 0))
+    R_GI = rot.quat_to_matrix(q)[None]
+    fit: dict = {}
+    _, cov_fit, _ = rates.rates_and_covariance(R_GI, cov_G, dt, h, unbiased=True, details=fit)
+    got = rates.rates_noise_cov(cov_G, fit["cubic"], dt, h)
+    ok = np.all(np.isfinite(cov_fit), axis=(-1, -2))
+    assert ok.sum() == n - 2 * h and fit["cubic"][ok].all()
+    assert np.allclose(got[ok], cov_fit[ok], rtol=1e-12)
 
 
 def test_inertia_least_squares_covariance_against_monte_carlo():

@@ -566,6 +566,72 @@ def _point_weights(cov_p, cov_g, R, use, Wi):
 
 
 @njit(cache=True, error_model="numpy")
+def _noise_share(p, g, cov_p, cov_g, R, use, gc, Wi, A, Bn, L, out):
+    """The covariance of the fit's attitude error from the points' own noise alone (the
+    rotation block of ``A^-1 Bn A^-1``, ``Bn = sum J_i^T W_i cov_p_i W_i J_i``, ``J_i = [-[u_i
+    x], I]``, the weights ``W_i`` at ``R``), into ``out`` (3x3); False if not determined.
+    The template's share, ``cov_g``, is an error fixed in G (it turns with the view only), so
+    it does not enter the rates (``stereo_points.rates_and_covariance``) as noise would."""
+    if _point_weights(cov_p, cov_g, R, use, Wi) < 3:
+        return False
+    gv = np.empty(6)
+    _rigid_normal(p, g, Wi, use, gc, R, np.zeros(3), A, gv)
+    for a in range(6):
+        for b in range(6):
+            Bn[a, b] = 0.0
+    u = np.empty(3)
+    J = np.empty((3, 6))
+    WJ = np.empty((3, 6))
+    CWJ = np.empty((3, 6))
+    for i in range(use.shape[0]):
+        if not use[i]:
+            continue
+        for a in range(3):
+            u[a] = (
+                R[a, 0] * (g[i, 0] - gc[0])
+                + R[a, 1] * (g[i, 1] - gc[1])
+                + R[a, 2] * (g[i, 2] - gc[2])
+            )
+        # J = [-[u x], I]
+        J[0, 0], J[0, 1], J[0, 2] = 0.0, u[2], -u[1]
+        J[1, 0], J[1, 1], J[1, 2] = -u[2], 0.0, u[0]
+        J[2, 0], J[2, 1], J[2, 2] = u[1], -u[0], 0.0
+        for a in range(3):
+            for b in range(3):
+                J[a, 3 + b] = 1.0 if a == b else 0.0
+        W = Wi[i]
+        for a in range(3):
+            for k in range(6):
+                WJ[a, k] = W[a, 0] * J[0, k] + W[a, 1] * J[1, k] + W[a, 2] * J[2, k]
+        C = cov_p[i]
+        for a in range(3):
+            for k in range(6):
+                CWJ[a, k] = C[a, 0] * WJ[0, k] + C[a, 1] * WJ[1, k] + C[a, 2] * WJ[2, k]
+        for k in range(6):
+            for l2 in range(6):
+                Bn[k, l2] += WJ[0, k] * CWJ[0, l2] + WJ[1, k] * CWJ[1, l2] + WJ[2, k] * CWJ[2, l2]
+    if not _chol6(A, L):
+        return False
+    Ainv = np.empty((6, 6))
+    e6 = np.zeros(6)
+    col = np.empty(6)
+    for j in range(6):
+        for i in range(6):
+            e6[i] = 1.0 if i == j else 0.0
+        _chol_back6(L, e6, col)
+        for i in range(6):
+            Ainv[i, j] = col[i]
+    T = Ainv[:3, :] @ Bn
+    for a in range(3):
+        for b in range(3):
+            acc = 0.0
+            for k in range(6):
+                acc += T[a, k] * Ainv[b, k]
+            out[a, b] = acc
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def _angle_between(R1, R2):
     tr = 0.0
     for a in range(3):
@@ -612,14 +678,17 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
     rotation block of the inverse normal matrix, so the translation is estimated with it),
     ``ok`` (M,) (at least three non-collinear points) and ``refined`` (M,): where no fit
     passed the gate the Kabsch fit is returned with its information-form covariance
-    ``(sum w (|a|^2 I - a a^T))^-1``."""
+    ``(sum w (|a|^2 I - a a^T))^-1``; last, the points' own noise's share of that covariance
+    (:func:`_noise_share`; the whole covariance where no fit passed)."""
     M, K = w.shape
     Ro = np.full((M, 3, 3), np.nan)
     oo = np.full((M, 3), np.nan)
     covt = np.full((M, 3, 3), np.nan)
+    covn = np.full((M, 3, 3), np.nan)
     ok_out = np.zeros(M, dtype=np.bool_)
     done = np.zeros(M, dtype=np.bool_)
     Wi = np.empty((K, 3, 3))
+    Bn = np.empty((6, 6))
     use0 = np.empty(K, dtype=np.bool_)
     use = np.empty(K, dtype=np.bool_)
     S = np.zeros((4, 6, 6))
@@ -700,6 +769,9 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
                 _chol_back6(L, e6, col)
                 for i in range(3):
                     covt[m, i, j] = col[i]
+            use[:] = use0
+            if not _noise_share(p[m], g[m], cov[m], cov_g[r], R, use, gc, Wi, A2, Bn, L, covn[m]):
+                covn[m] = covt[m]
             Ro[m] = R
             for a in range(3):
                 oo[m, a] = c[a] - (R[a, 0] * gc[0] + R[a, 1] * gc[1] + R[a, 2] * gc[2])
@@ -718,7 +790,8 @@ def align_rigid(p, g, cov, cov_g, w, iters, run_len):
                 info[a, a] += 1e-12
             if not _inv3_sym(info, covt[m]):
                 ok_out[m] = False
-    return Ro, oo, covt, ok_out, done
+            covn[m] = covt[m]
+    return Ro, oo, covt, ok_out, done, covn
 
 
 @njit(cache=True, error_model="numpy")

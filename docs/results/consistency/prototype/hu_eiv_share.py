@@ -56,5 +56,8 @@ for si, kk in enumerate(sel):
     if not t0 <= kk * dt <= t1:
         continue
     lam = np.linalg.eigvalsh(I_G[si])[::-1]
-    g = sl.eigh(Nc[0, si], N[0, si], eigvals_only=True)
+    try:
+        g = sl.eigh(Nc[0, si], N[0, si], eigvals_only=True)
+    except np.linalg.LinAlgError:  # no rows yet (N singular)
+        continue
     print(f"t={kk * dt:.0f} moments {np.round(lam / lam[0], 4)} lambda {g[-1]:.3g}, {g[-2]:.3g}")

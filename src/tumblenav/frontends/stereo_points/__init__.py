@@ -49,6 +49,7 @@ from tumblenav.frontends.stereo_points.rates import (  # noqa: F401
     _quats,
     _skew,
     rates_and_covariance,
+    rates_noise_cov,
 )
 from tumblenav.frontends.stereo_points.refine import (  # noqa: F401
     _refine_epochs,
@@ -116,12 +117,14 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_GI = R_GC @ R_CL @ R_LI
     history = [(bounds[0], template)]
     vers = []  # (R_GI, cov_G, omega, cov_fit, cov_w) over the version's first epochs
+    vers_noise = []  # the rates' fit noise from the points' own noise alone (rates_noise_cov)
+    cov_Gn = info["cov_G_noise"]
     tmpl, cov_t = template, info.get("cov_template")
     fitted = np.zeros(len(meas_list), dtype=bool)  # runs whose template is a fit's
     for v in range(len(bounds) - 1):
         m = min(int(bounds[v + 1].max()), n)  # a rate before bounds[v+1] - h needs no more
         if v > 0:  # refine at bounds[v], with the previous version's G
-            tmpl, cov_t, R_GI, cov_G, fitted = _refine_template(
+            tmpl, cov_t, R_GI, cov_G, fitted, cov_Gn = _refine_template(
                 t, info["first"], bounds[v], m, p_C, cov_C, p_L, cov_L, usable, known_at,
                 tmpl, cov_t, R_GI, cov_G, R_CL, R_LI, refined=fitted,
             )  # fmt: skip
@@ -135,6 +138,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         vers.append(
             (Rv, cGv) + rates_and_covariance(Rv, cGv, dt, h, unbiased=last, details=fit) + (fit,)
         )
+        vers_noise.append(rates_noise_cov(cov_Gn[:, :m], fit["cubic"], dt, h))
     # as reported at each epoch: G from a version's refinement on, the rate of epoch j (known
     # at j + h) from the version in force at j + h
     R_GI = np.full((len(meas_list), n, 3, 3), np.nan)
@@ -155,7 +159,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
     R_ls, cG_ls, om_ls, cf_ls, cw_ls, fit_ls = vers[-1]
     before = [
         (om, np.trace(cw, axis1=-2, axis2=-1) / 3.0, Rv, cf if full else None, bounds[v],
-         bounds[v + 1], fd, cGv)
+         bounds[v + 1], fd, cGv, vers_noise[v])
         for v, (Rv, cGv, om, cf, cw, fd) in enumerate(vers[:-1])
     ]  # fmt: skip
     R_GT, moments, q_TI, cov_TI, cov_frame, cov_ratios, frame_gate = identify_and_dpacf(
@@ -171,6 +175,7 @@ def process(meas_list, settings: FrontEndSettings | None = None) -> PointsFrontE
         fit=fit_ls,
         dt=dt,
         cov_G_rows=cG_ls,
+        cov_w_noise=vers_noise[-1],
     )
     return PointsFrontEnd(
         t=t,

@@ -21,6 +21,7 @@ def weighted_kabsch(
     cov_C: Array | None = None,
     cov_g: Array | None = None,
     run_len: int = 1,
+    noise: dict | None = None,
 ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
     """Rigid alignment ``p_C ~ R_CG g_G + o_C`` (weighted least squares), batched.
 
@@ -40,14 +41,17 @@ def weighted_kabsch(
     depth error tilt the frame (tens of degrees at 190 m with b = 1 m, sigma = 2e-5 rad),
     while the lateral positions of points spread in depth fix the tilt to a fraction of a
     degree, as in a perspective pose fit. Alignments whose refined cost fails its
-    chi-square gate keep the Kabsch fit and covariance.
+    chi-square gate keep the Kabsch fit and covariance. ``noise``, if given, receives
+    ``cov_G``, the points' own noise's share of the covariance (in G; the whole of it without
+    ``cov_g`` or where no fit passed its gate): the share that is independent between
+    epochs.
     """
     p_C = np.ascontiguousarray(p_C, dtype=float)
     g_G = np.ascontiguousarray(g_G, dtype=float)
     w = np.ascontiguousarray(w, dtype=float)
     if cov_C is not None:
         cov_g = np.zeros((len(w) // run_len,) + w.shape[1:] + (3, 3)) if cov_g is None else cov_g
-        R_CG, o, cov_t, ok, _ = _points_kernel.align_rigid(
+        R_CG, o, cov_t, ok, _, cov_n = _points_kernel.align_rigid(
             p_C,
             g_G,
             np.ascontiguousarray(cov_C, dtype=float),
@@ -62,6 +66,9 @@ def weighted_kabsch(
         cov_t = np.where(ok[:, None, None], cov_t, eye)
         R_GC = np.swapaxes(R_CG, -1, -2)
         cov_G = R_GC @ cov_t @ np.swapaxes(R_GC, -1, -2)
+        if noise is not None:
+            cov_n = np.where(ok[:, None, None], cov_n, eye)
+            noise["cov_G"] = R_GC @ cov_n @ np.swapaxes(R_GC, -1, -2)
         return R_GC, o, cov_G, ok
     # sums over the points in a compiled loop (the numpy version of these few lines made
     # full-size temporaries of every (run, epoch, feature) vector; same formulas below)
@@ -80,6 +87,8 @@ def weighted_kabsch(
     cov_t = np.linalg.inv(info + 1e-12 * eye)
     R_GC = np.swapaxes(R_CG, -1, -2)
     cov_G = R_GC @ cov_t @ np.swapaxes(R_GC, -1, -2)
+    if noise is not None:
+        noise["cov_G"] = cov_G
     return R_GC, o, cov_G, ok
 
 
@@ -118,7 +127,8 @@ def photogrammetric_frames(
     attitudes are computed for the first ``stop_after`` epochs from G's definition only,
     rounded up to a multiple of ``stop_every`` (NaN after; see ``process``, the template's
     refinement). ``info``, if given, receives ``cov_template`` (B,N,3,3), the template's
-    covariance in G, and with ``stop_after``: ``first`` (B,), G's first epoch (n where
+    covariance in G, ``cov_G_noise`` (B,n,3,3), the points' own noise's share of the G
+    attitudes' covariance (``weighted_kabsch``'s ``noise``), and with ``stop_after``: ``first`` (B,), G's first epoch (n where
     none), and ``stop`` (B,), the first epoch without an attitude."""
     B, n, N, _ = p_C.shape
     template = np.full((B, N, 3), np.nan)
@@ -189,6 +199,7 @@ def photogrammetric_frames(
         info["cov_template"] = cov_tmpl
     w = np.where(use, w_all, 0.0).reshape(B * n, N)
     tmpl = np.broadcast_to(template[:, None], (B, n, N, 3)).reshape(B * n, N, 3)
+    noise: dict = {}
     Rgc, _, cg, ok = weighted_kabsch(
         p_C.reshape(B * n, N, 3),
         tmpl,
@@ -203,10 +214,15 @@ def photogrammetric_frames(
         # stays nearly constant in G, which the principal frame absorbs.
         np.trace(cov_tmpl, axis1=-2, axis2=-1)[..., None, None] * np.eye(3),
         run_len=n,
+        noise=noise,
     )
     ok = ok.reshape(B, n)
     R_GC = np.where(ok[..., None, None], Rgc.reshape(B, n, 3, 3), np.nan)
     cov_G = np.where(ok[..., None, None], cg.reshape(B, n, 3, 3), np.nan)
+    if info is not None:
+        info["cov_G_noise"] = np.where(
+            ok[..., None, None], noise["cov_G"].reshape(B, n, 3, 3), np.nan
+        )
     return R_GC, cov_G, template, known, known_at
 
 

@@ -86,7 +86,7 @@ def whitening(C_all, ok):  # pragma: no cover - compiled
 
 
 @njit(cache=True, error_model="numpy")
-def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):  # pragma: no cover
+def gls_sums_at(a, b, ok, Linv, S, coef, extra, Cn, Ibar, R_GI, delay, sel, q_step):  # pragma: no cover
     """The least squares' sums and its noise model (module docstring), read at epochs
     ``sel`` over the rows ``0 .. k - delay``.
 
@@ -94,7 +94,9 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
     S (B,n,3,3): covariance of each epoch's G attitude error (rad^2); coef (B,n,2h+1): the
     rate fit's coefficients at each epoch, divided by dt (the rate's noise is ``sum_i
     coef[j, i] psi_{j-h+i} - [omega_j x] psi_j``); extra (B,n,3,3): the rate's covariance
-    not from ``psi`` (independent between epochs); Ibar (B,n,4,3): the normalised inertia
+    not from ``psi`` (independent between epochs); Cn (B,n,3,3): the covariance of the rate's
+    zero-mean noise, the regressors' errors (errors in variables; the whitening's, ``(Linv^T
+    Linv)^-1``, unless the caller knows better); Ibar (B,n,4,3): the normalised inertia
     (rows 0-2) and the rate (row 3) the row's noise is taken at: ``Ibar (rate noise) +
     [Ibar omega x] psi_j``; R_GI (B,n,3,3): the rows' G attitudes; q_step
     (B,n): the momentum's random-walk variance per axis over the step to each epoch.
@@ -192,9 +194,9 @@ def gls_sums_at(a, b, ok, Linv, S, coef, extra, Ibar, R_GI, delay, sel, q_step):
                     Esum += A0 * LL  # the momentum's walk since the first row (diagonal)
                     Ewalk += A0 * LL
                     # errors in variables: the row's noise is Linv I_bar(X) d_omega, so
-                    # E[da^T da]_kk' = tr(E_k P E_k' C), P = Linv^T Linv, C = P^-1
+                    # E[da^T da]_kk' = tr(E_k P E_k' C), P = Linv^T Linv, C = Cov(d_omega)
                     P = Lj.T @ Lj
-                    Cw = np.linalg.inv(P)
+                    Cw = Cn[bi, j]
                     if A0 > 0.0:  # the walk's share per axis of I: A0 R^T P R
                         Rj = R_GI[bi, j]
                         Sw += A0 * (Rj.T @ P @ Rj)

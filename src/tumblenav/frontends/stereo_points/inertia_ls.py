@@ -61,6 +61,7 @@ def identify_and_dpacf(
     fit: dict | None = None,
     dt: float = 1.0,
     cov_G_rows: Array | None = None,
+    cov_w_noise: Array | None = None,
 ) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
     """Growing-batch weighted least squares (Hu 2024 eq. 13-14), DPACF (eq. 17) and the
     attitude measurement q_TI = q_TG (x) q_GI (eq. 31) with its covariance; last, the
@@ -76,19 +77,23 @@ def identify_and_dpacf(
     (``s.q_r``) are modelled as in :mod:`~tumblenav.frontends.stereo_points.gls`: ``fit``
     (``rates_and_covariance``'s ``details``, the rate fit chosen at each epoch) and ``cov_G``
     (``cov_G_rows``: the G attitudes' covariance of the rows' version, if not ``cov_G``) give the rates' correlation over
-    ``dt``-spaced epochs; without ``fit``, every epoch is taken as the cubic fit."""
+    ``dt``-spaced epochs; without ``fit``, every epoch is taken as the cubic fit.
+    ``cov_w_noise`` (B,n,3,3): the rates' zero-mean noise (``rates.rates_noise_cov``), what the
+    errors-in-variables compensation takes as the regressors' (else ``cov_w``; ``before``'s
+    items may carry theirs ninth)."""
     B, n = omega_G.shape[:2]
     # The identification is re-solved every `ls_every` epochs and held in between (the
     # attitude measurement still uses the G attitude of every epoch).
     held = (np.arange(n) // s.ls_every) * s.ls_every
     sel = np.unique(held)
     cG_rows = cov_G if cov_G_rows is None else cov_G_rows
-    rows = _gls_rows(omega_G, var_w, R_GI, cov_w, cG_rows, fit, s, dt)
+    rows = _gls_rows(omega_G, var_w, R_GI, cov_w, cG_rows, fit, s, dt, cov_w_noise)
     N, r, bb, cnt, V, E, Nc, rc, M, Ew, Sw = _version_sums(rows, omega_G, R_GI, s, dt, delay, sel)
     for item in before or []:
         om_o, var_o, R_o, cw_o, k_from, k_to = item[:6]
         fit_o = item[6] if len(item) > 6 else None
         cG_o = item[7] if len(item) > 7 else cov_G
+        cn_o = item[8] if len(item) > 8 else None
         # the solutions between two refinements: the sums of the rows as they were then
         m = min(int(k_to.max()), n)
         early = sel < m
@@ -96,7 +101,8 @@ def identify_and_dpacf(
             continue
         sub = None if fit_o is None else {k: v[:, :m] for k, v in fit_o.items()}
         rows_o = _gls_rows(om_o[:, :m], var_o[:, :m], R_o[:, :m],
-                           None if cw_o is None else cw_o[:, :m], cG_o[:, :m], sub, s, dt)  # fmt: skip
+                           None if cw_o is None else cw_o[:, :m], cG_o[:, :m], sub, s, dt,
+                           None if cn_o is None else cn_o[:, :m])  # fmt: skip
         se = sel[early]
         # the sums of a solution before k_to cover epochs up to k_to - h - 1 < m only
         so = _version_sums(rows_o, om_o[:, :m], R_o[:, :m], s, dt, delay, se)
@@ -133,10 +139,10 @@ def _with_rate(I_row, omega):
     return np.ascontiguousarray(np.concatenate([I_row, np.nan_to_num(omega)[..., None, :]], -2))
 
 
-def _gls_rows(omega_G, var_w, R_GI, cov_w, cov_G, fit, s, dt):
+def _gls_rows(omega_G, var_w, R_GI, cov_w, cov_G, fit, s, dt, cov_noise=None):
     """The arguments of :func:`gls.gls_sums_at` before ``Ibar``: whitened rows, their
-    whitening, the attitudes' covariance, the rate fit's coefficients and its independent
-    part."""
+    whitening, the attitudes' covariance, the rate fit's coefficients, its independent
+    part and the rates' zero-mean noise (``cov_noise``, else the whitening's)."""
     B, n = omega_G.shape[:2]
     h = s.rate_half_window
     a, b, w, ok = _ls_rows(omega_G, var_w, R_GI, cov_w)
@@ -145,9 +151,13 @@ def _gls_rows(omega_G, var_w, R_GI, cov_w, cov_G, fit, s, dt):
         a = a * sw[..., None, None]
         b = b * sw[..., None]
         Linv = sw[..., None, None] * np.eye(3)
+        Cn = np.nan_to_num(var_w)[..., None, None] * np.eye(3)
     else:
         ok = ok.copy()
         Linv = gls.whitening(np.ascontiguousarray(np.nan_to_num(cov_w)), ok)
+        Cn = np.nan_to_num(cov_w)
+    if cov_noise is not None:
+        Cn = np.nan_to_num(cov_noise)
     cl, cc = gls.fit_coefficients(h)
     cubic = np.ones((B, n), bool) if fit is None else fit["cubic"]
     # the rate's noise from the attitudes: -sum_i c_i psi_{j+i} / dt (rates_and_covariance)
@@ -155,7 +165,8 @@ def _gls_rows(omega_G, var_w, R_GI, cov_w, cov_G, fit, s, dt):
     extra = np.zeros((B, n, 3, 3)) if fit is None else np.nan_to_num(fit["bias_cov"])
     S = np.ascontiguousarray(np.nan_to_num(cov_G))
     return (np.ascontiguousarray(a), np.ascontiguousarray(b), ok, np.ascontiguousarray(Linv),
-            S, np.ascontiguousarray(coef), np.ascontiguousarray(extra))  # fmt: skip
+            S, np.ascontiguousarray(coef), np.ascontiguousarray(extra),
+            np.ascontiguousarray(Cn, dtype=float))  # fmt: skip
 
 
 def _inertia_at(N, r, cnt, s):

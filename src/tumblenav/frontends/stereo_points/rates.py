@@ -89,6 +89,25 @@ def rates_and_covariance(
     return omega, cov, cov + wx @ np.nan_to_num(cov_G) @ np.swapaxes(wx, -1, -2)
 
 
+def rates_noise_cov(cov_G_noise: Array, cubic: NDArray[np.bool_], dt: float, h: int) -> Array:
+    """The covariance of the rate fit's noise (as ``rates_and_covariance``'s second output,
+    the fit ``cubic`` (B,n) chose at each epoch) from the G attitudes' covariance share that
+    is independent between epochs, the points' own noise (``photogrammetric_frames``'
+    ``cov_G_noise``), without the line's bias allowance: the rates' zero-mean noise.
+
+    Why (issue 18): the G attitudes' covariance also holds the template's errors, stated
+    conservatively (bounded by their trace) and fixed in G, so they turn into rate errors
+    only as the view changes. Propagated as if independent between epochs they made the
+    rates' stated noise 3-7 times its variance against the truth on hu_selfocc (one axis
+    0.043 rad/s against 0.006 over the first 30 s), and the inertia least squares'
+    errors-in-variables compensation, which takes that noise as the regressors', took away
+    more than all of the information along one direction (``inertia_ls``)."""
+    fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
+    C = np.nan_to_num(cov_G_noise) / dt**2
+    with np.errstate(invalid="ignore"):  # fc = inf for h = 1, where the cubic fit is not used
+        return np.where(cubic[..., None, None], fc * C, fl * C)
+
+
 def _skew(v: Array) -> Array:
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]

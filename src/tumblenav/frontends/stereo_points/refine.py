@@ -83,6 +83,7 @@ def _refine_template(
     m = upto
     use = usable[:, :m] & known_at[:, :m] & (k_ref < n)[:, None, None]
     w = np.where(use, 1.0 / np.maximum(np.trace(cov_C[:, :m], axis1=-2, axis2=-1), 1e-30), 0.0)
+    noise: dict = {}
     R2, _, c2, ok2 = weighted_kabsch(
         p_C[:, :m].reshape(B * m, N, 3),
         np.broadcast_to(new_t[:, None], (B, m, N, 3)).reshape(B * m, N, 3),
@@ -90,13 +91,15 @@ def _refine_template(
         cov_C[:, :m].reshape(B * m, N, 3, 3),
         np.trace(new_c, axis1=-2, axis2=-1)[..., None, None] * np.eye(3),  # as in pass 2
         run_len=m,
+        noise=noise,
     )
     ok2 = ok2.reshape(B, m)
     R_GI2 = np.where(ok2[..., None, None], R2.reshape(B, m, 3, 3), np.nan) @ (
         R_CL[:, :m] @ R_LI[:, :m]
     )
     cov_G2 = np.where(ok2[..., None, None], c2.reshape(B, m, 3, 3), np.nan)
-    return new_t, new_c, R_GI2, cov_G2, ref
+    cov_G2_noise = np.where(ok2[..., None, None], noise["cov_G"].reshape(B, m, 3, 3), np.nan)
+    return new_t, new_c, R_GI2, cov_G2, ref, cov_G2_noise
 
 
 def _refine_epochs(first: NDArray[np.int64], s: FrontEndSettings, dt: float, n: int):
