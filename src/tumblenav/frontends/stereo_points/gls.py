@@ -86,7 +86,9 @@ def whitening(C_all, ok):  # pragma: no cover - compiled
 
 
 @njit(cache=True, error_model="numpy")
-def gls_sums_at(a, b, ok, Linv, S, coef, extra, Cn, Ibar, R_GI, delay, sel, q_step):  # pragma: no cover
+def gls_sums_at(
+    a, b, ok, Linv, S, coef, extra, Cn, Ibar, R_GI, delay, sel, q_step
+):  # pragma: no cover
     """The least squares' sums and its noise model (module docstring), read at epochs
     ``sel`` over the rows ``0 .. k - delay``.
 
