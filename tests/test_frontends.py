@@ -910,6 +910,36 @@ def test_alignment_warm_start_and_its_fallback():
     )[3][0]
 
 
+def test_rate_covariance_follows_the_attitudes_covariance_across_its_window():
+    """``rates_and_covariance`` where G's covariance steps up (a change of the visible
+    features: hu_selfocc run 96 at 94.5 s, 20-fold): the rates of the epochs whose window
+    reaches past the step are as uncertain as its attitudes make them, each weighted by its
+    coefficient squared. Over 400 runs the full covariance's NEES/dof at those epochs is
+    inside its chi-square bounds (114 with the centre's covariance taken for the
+    whole window), and ``rates_noise_cov`` is the same sum."""
+    from tumblenav.evaluation.metrics import chi2_bounds
+    from tumblenav.frontends.stereo_points import rates_and_covariance, rates_noise_cov
+
+    dt, h, n, B = 0.1, 5, 60, 400
+    t = np.arange(n) * dt
+    axis = np.array([0.0, 0.6, 0.8])
+    R_GI = Rotation.from_rotvec(-(0.2 * t)[:, None] * axis).as_matrix()
+    sig = np.where(np.arange(n) < 30, 1e-3, 2e-2)  # the step at epoch 30
+    rng = np.random.default_rng(8)
+    psi = sig[None, :, None] * rng.normal(size=(B, n, 3))
+    noisy = Rotation.from_rotvec(psi.reshape(-1, 3)).as_matrix().reshape(B, n, 3, 3) @ R_GI
+    cov_G = np.broadcast_to((sig**2)[:, None, None] * np.eye(3), (B, n, 3, 3)).copy()
+    fit: dict = {}
+    om, cov_fit, cov = rates_and_covariance(noisy, cov_G, dt, h, unbiased=True, details=fit)
+    k = np.arange(30 - h, 30)  # windows reaching past the step, centres before it
+    e = om[:, k] - 0.2 * axis
+    nees = np.einsum("bki,bkij,bkj->bk", e, np.linalg.inv(cov[:, k]), e) / 3
+    lo, hi = chi2_bounds(3, B * len(k))
+    assert lo <= nees.mean() <= hi, nees.mean()
+    assert nees.mean(axis=0).max() < 1.3  # at each of those epochs, not only on average
+    assert np.allclose(rates_noise_cov(cov_G, fit["cubic"], dt, h)[:, k], cov_fit[:, k])
+
+
 def test_rate_fit_choice_follows_the_bias():
     """``rates_and_covariance``: with precise attitudes the third-order bias of the line
     dominates and the cubic fit is used; with noisy attitudes the line is used; the fit's

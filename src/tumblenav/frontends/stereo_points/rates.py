@@ -6,6 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tumblenav.frontends import _points_kernel
+from tumblenav.frontends.stereo_points.gls import fit_coefficients
 
 Array = NDArray[np.float64]
 
@@ -37,8 +38,13 @@ def rates_and_covariance(
     ``bias_epochs`` epochs, is the bias's mean square. Each epoch uses the fit with the
     smaller expected mean square error: the cubic one where the attitudes are precise (near
     range, where the bias dominates by a factor 10), the line where they are noisy, with the
-    bias's mean square added to its covariance. ``cov_G`` is taken as constant over the
-    window.
+    bias's mean square added to its covariance. The fit's variance sums each attitude's
+    covariance with its coefficient squared (``_window_sum``; before issue 18's twenty-fourth
+    session the centre's was taken for the whole window, which at a change of the visible
+    features, where G's covariance grows twentyfold from one epoch to the next, stated the
+    rates of the epochs before it 30-60 times too precise: hu_selfocc run 96, 94.5 s, rate
+    errors of 0.1 rad/s entered the inertia least squares at full weight and moved its
+    moments by 0.025).
 
     ``unbiased`` (bool or (B,)): the cubic fit wherever it exists, in those runs (the rows of
     a growing least-squares batch: there the noise averages out but the line's bias does
@@ -58,9 +64,13 @@ def rates_and_covariance(
     # phi_j = log(q(k+j) (x) conj(q(k))), j = -h..h (compiled loop)
     om_l, om_c = _points_kernel.rate_fit(q, valid, h, dt)
     good = np.all(np.isfinite(om_l), axis=-1) & np.all(np.isfinite(cov_G), axis=(-1, -2))
-    fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
-    C = np.where(good[..., None, None], cov_G, 0.0) / dt**2
-    var_diff = (fc - fl) * np.diagonal(C, axis1=-2, axis2=-1)  # (B,n,3)
+    C = np.nan_to_num(cov_G) / dt**2
+    cl, cc = fit_coefficients(h)
+    Cl = np.where(good[..., None, None], _window_sum(C, cl**2), 0.0)  # the line's variance
+    Cc = np.where(good[..., None, None], _window_sum(C, cc**2), 0.0)  # the cubic's
+    # the nested fits' difference: its variance
+    var_diff = np.diagonal(_window_sum(C, (cl - cc) ** 2), axis1=-2, axis2=-1)  # (B,n,3)
+    var_diff = np.where(good[..., None], var_diff, 0.0)
     d2 = np.where(good[..., None], np.nan_to_num((om_l - om_c) ** 2 - var_diff), 0.0)
     # trailing mean over the last `bias_epochs` epochs with a rate (causal)
     cs = np.cumsum(np.concatenate([np.zeros_like(d2[:, :1]), d2], 1), axis=1)
@@ -70,16 +80,13 @@ def rates_and_covariance(
     hi = np.arange(n) + 1
     cnt = np.maximum(cn[:, hi] - cn[:, lo], 1)
     b2 = np.maximum((cs[:, hi] - cs[:, lo]) / cnt[..., None], 0.0)
-    cubic = (np.sum(b2, -1) > (fc - fl) * np.trace(C, axis1=-2, axis2=-1)) & np.all(
-        np.isfinite(om_c), -1
-    )
+    cubic = (np.sum(b2, -1) > np.trace(Cc - Cl, axis1=-2, axis2=-1)) & np.all(np.isfinite(om_c), -1)
     # per run (B,): the cubic fit wherever it exists
     unb = np.broadcast_to(np.asarray(unbiased, dtype=bool), good.shape[:1])[:, None]
     cubic = np.where(unb, np.all(np.isfinite(om_c), -1), cubic)
     omega = np.where(cubic[..., None], om_c, om_l)
     eye = np.eye(3)
-    with np.errstate(invalid="ignore"):  # fc = inf for h = 1, where the cubic fit is not used
-        cov = np.where(cubic[..., None, None], fc * C, fl * C + b2[..., None] * eye)
+    cov = np.where(cubic[..., None, None], Cc, Cl + b2[..., None] * eye)
     omega = np.where(good[..., None], omega, np.nan)
     cov = np.where(good[..., None, None], cov, np.nan)
     if details is not None:
@@ -102,10 +109,26 @@ def rates_noise_cov(cov_G_noise: Array, cubic: NDArray[np.bool_], dt: float, h: 
     0.043 rad/s against 0.006 over the first 30 s), and the inertia least squares'
     errors-in-variables compensation, which takes that noise as the regressors', took away
     more than all of the information along one direction (``inertia_ls``)."""
-    fl, fc, _ = _fit_factors(h) if h >= 2 else (0.5, np.inf, 0.0)
     C = np.nan_to_num(cov_G_noise) / dt**2
-    with np.errstate(invalid="ignore"):  # fc = inf for h = 1, where the cubic fit is not used
-        return np.where(cubic[..., None, None], fc * C, fl * C)
+    cl, cc = fit_coefficients(h)
+    return np.where(cubic[..., None, None], _window_sum(C, cc**2), _window_sum(C, cl**2))
+
+
+def _window_sum(C: Array, w: Array) -> Array:
+    """``sum_i w_i C[:, k - h + i]`` at every epoch k (B,n,...), ``w`` of length ``2h + 1``;
+    epochs beyond the ends count as zero (the rates there are NaN anyway)."""
+    h = (len(w) - 1) // 2
+    n = C.shape[1]
+    out = np.zeros_like(C)
+    for i, wi in enumerate(w):
+        if wi == 0.0:
+            continue
+        o = i - h  # the attitude of epoch k + o
+        if o >= 0:
+            out[:, : n - o] += wi * C[:, o:]
+        else:
+            out[:, -o:] += wi * C[:, : n + o]
+    return out
 
 
 def _skew(v: Array) -> Array:
