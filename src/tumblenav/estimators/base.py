@@ -247,6 +247,10 @@ class EstimateHistory:
     skipped: dict[str, int] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
     P_every: int = 1
+    # (n, m) each update's innovation (NaN: not used), where an estimator reports its NIS
+    # against another covariance than its own after the run (Kabir's covariance analysis);
+    # None elsewhere, and dropped once used
+    innovations: Array | None = None
 
     def block(self, name: str) -> Array:
         return self.x[:, self.layout.nom(name)]

@@ -199,10 +199,10 @@ class _UKFModel:
         Rk: Array,
         rows: NDArray[np.bool_],
         consider: NDArray[np.bool_] | None = None,
-    ) -> tuple[Array, Array, Array, NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+    ) -> tuple[Array, Array, Array, NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_], Array]:
         """Kabir 2025 eq. 22-25 for B runs with epoch ``k``'s measurements ``zk``, variances
         ``Rk`` (B, 9N) where ``rows``; returns x, P, NIS and its dof (B,), the rejected
-        features (B,) and the runs repaired.
+        features (B,), the runs repaired and the innovations (B, 9N; NaN where not used).
 
         ``consider`` (B,): runs whose rigid parameters (inertia ratios and features) are
         consider parameters in this update (Schmidt): their gain is zero, so they keep their
@@ -277,7 +277,7 @@ class _UKFModel:
         if not self.additive:
             P = _cap_attitude(P)
         nis = np.where(rows.any(1), np.sum(nu * Sinv_nu, axis=1), np.nan)
-        return x, P, nis, rows.sum(1), rejected, rep
+        return x, P, nis, rows.sum(1), rejected, rep, np.where(rows, nu, np.nan)
 
     def _change_chart(
         self, x: Array, P: Array, runs: NDArray[np.bool_], to_world: bool
@@ -351,6 +351,7 @@ def _filter(
     Ps = np.full((B, n, d, d), np.nan)
     nis = np.full((B, n), np.nan)
     nis_dof = np.zeros((B, n), dtype=np.int64)
+    innov = np.full((B, n, M), np.nan)
     rejected = np.zeros(B, dtype=np.int64)
     repairs = np.zeros(B, dtype=np.int64)
     diverged_at = np.full(B, -1, dtype=np.int64)
@@ -379,11 +380,14 @@ def _filter(
                 coast = ~rows.any(axis=1)
                 if rows.any():
                     ck = None if consider is None else np.asarray(consider)[:, k]
-                    x, P, nis_k, dof_k, rej, rep = m.update(x, P, k, z[:, k], Rv[:, k], rows, ck)
+                    x, P, nis_k, dof_k, rej, rep, nu_k = m.update(
+                        x, P, k, z[:, k], Rv[:, k], rows, ck
+                    )
                     repairs[rep & alive] += 1
                     rejected += rej
                     nis[:, k] = nis_k
                     nis_dof[:, k] = dof_k
+                    innov[:, k] = nu_k
                 ok = _sane(x, P)
             except np.linalg.LinAlgError:
                 ok = np.zeros(B, dtype=bool)
@@ -405,6 +409,7 @@ def _filter(
         "P": Ps,
         "nis": nis,
         "nis_dof": nis_dof,
+        "innov": innov,
         "rejected": rejected,
         "diverged_at": diverged_at,
         "repairs": repairs,
@@ -431,6 +436,7 @@ class UKFSteps:
     k0: int = 0
     skip_first: bool = False
     consider: NDArray[np.bool_] | None = None  # (n,) epochs: _UKFModel.update's consider
+    innovations: Array | None = None  # (n, 9N), filled in: each update's innovation (NaN: unused)
 
     def initialise(self, k: int) -> tuple[Belief | None, StepInfo]:
         if k != self.k0:
@@ -468,10 +474,12 @@ class UKFSteps:
             try:
                 if rows.any():
                     ck = None if self.consider is None else self.consider[k : k + 1]
-                    x, P, nis_k, dof_k, rej_k, rep = self.model.update(
+                    x, P, nis_k, dof_k, rej_k, rep, nu_k = self.model.update(
                         x, P, k, self.z[k][None], self.Rv[k][None], rows, ck
                     )
                     nis, dof, rej = float(nis_k[0]), int(dof_k[0]), int(rej_k[0])
+                    if self.innovations is not None:
+                        self.innovations[k] = nu_k[0]
                     repairs += int(rep[0])
                 ok = bool(_sane(x, P)[0])
             except np.linalg.LinAlgError:
@@ -657,6 +665,7 @@ def run_ukf(
         k0=k0,
         skip_first=skip,
         consider=None if consider is None else np.asarray(consider, dtype=bool),
+        innovations=np.full((n, 9 * N), np.nan),
     )
     r = fold(steps, t)
     stopped = np.flatnonzero(np.isfinite(r.x[:-1, 0]) & ~np.isfinite(r.x[1:, 0])) + 1
@@ -670,6 +679,7 @@ def run_ukf(
         "diverged_at": np.array([(int(stopped[0]) if len(stopped) else 0) if r.diverged else -1]),
         "repairs": np.array([r.skipped.get("covariance_repairs", 0)]),
         "usable": usable[None],
+        "innov": np.asarray(steps.innovations)[None],
     }
     return _history(t, res, 0, variant, prep.tuning, np.asarray(x0), prep)
 
@@ -696,6 +706,7 @@ def _history(
         layout=layout((x.shape[-1] - 9) // 3),
         nis=res["nis"][b],
         nis_dof=res["nis_dof"][b],
+        innovations=res["innov"][b] if "innov" in res else None,
         skipped=_skipped(res["usable"][b], res, b),
         info={
             "convention": "kabir2025",  # [omega_TI_T, q_TI, k1, k2, p_T]: evaluation.alignment

@@ -263,6 +263,7 @@ def actual_covariance(
     q_r: float,
     flow_walk_var: float = 0.0,
     world: bool = False,
+    innovations: dict[int, tuple[NDArray[np.bool_], Array, Array]] | None = None,
 ) -> tuple[Array, Array]:
     """``P_f`` and ``P_a`` (n, d, d) after each epoch (NaN before the filter's start): the
     filter's covariance and the actual error's, linearised along ``hist`` (module docstring),
@@ -275,7 +276,11 @@ def actual_covariance(
     chart at each estimate (its Jacobian ``J`` on the body chart's, :func:`world_jacobians`),
     the step ``J(f(x_k-1)) F J(x_k-1)^-1``, the update ``H J(x_k)^-1`` (no column on the
     attitude: the projections do not see it there); ``P_f``, ``P_a`` are returned in the body
-    chart at the estimate."""
+    chart at the estimate. ``innovations``, if given, receives per updated epoch the
+    components used (flat, ``z[k]``'s order), the innovations' covariance the filter states,
+    ``H P H^T + R``, and their actual one, ``nu = H e + M n + A dw + white`` over the
+    analysis' state before the update (the flows reuse the projections the prediction has
+    already been updated with)."""
     lay = hist.layout
     n, d = len(t), lay.dim
     N = z.shape[1]
@@ -347,6 +352,7 @@ def actual_covariance(
         Cb = L @ Cb @ L.T
         if i is not None:
             Hb = Hk[i]
+            Pf_prior = Pf
             rows, H, Rk, K, A, Pf = filter_update(Pf, Hb @ Jx_inv[k] if world else Hb, z[k], R[k])
             flow = is_flow[rows]
             white = np.where(flow, np.maximum(Rk[rows] - stencil_var - flow_walk_var, 0.0), 0.0)
@@ -359,6 +365,11 @@ def actual_covariance(
                     )
             # the flow's response to the body rate's walk (the stencil sees the truth's)
             Hr = np.where(flow[:, None], Hb.reshape(-1, d)[rows][:, er], 0.0)
+            if innovations is not None:  # nu = H e + M n + Hr W w + white
+                Lnu = np.zeros((len(H), Db))
+                Lnu[:, :d], Lnu[:, inw], Lnu[:, ipw] = H, M[rows], Hr @ W
+                S_a = Lnu @ Cb @ Lnu.T + np.diag(white)
+                innovations[k] = (rows, H @ Pf_prior @ H.T + np.diag(Rk[rows]), S_a)
             T = np.eye(Db)
             T[:d, :d] = A
             T[:d, inw] = -K @ M[rows]

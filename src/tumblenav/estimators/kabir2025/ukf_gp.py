@@ -808,6 +808,9 @@ class KabirUKFGP:
                 if coast.any():
                     _coasts_actual(hist, t, real, coast, Pf, Pa, moving_q(hist.layout, tun_r))
         hist.skipped["gp_fallback_features"] = len(fallback)
+        # its NIS stays the filter's: the GP's pseudo-measurements are not in the analysis'
+        # innovation model (ukf, ukf-mult: kabir2025._report_nis)
+        hist.innovations = None
         hist.info["gp"] = summaries
         hist.info["gp_fallback"] = fallback
         if fallback:
