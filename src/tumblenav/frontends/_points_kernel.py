@@ -621,12 +621,12 @@ def _noise_share(p, g, cov_p, cov_g, R, use, gc, Wi, A, Bn, L, out):
         _chol_back6(L, e6, col)
         for i in range(6):
             Ainv[i, j] = col[i]
-    T = Ainv[:3, :] @ Bn
-    for a in range(3):
+    for a in range(3):  # the rotation block of Ainv Bn Ainv (Ainv symmetric)
         for b in range(3):
             acc = 0.0
             for k in range(6):
-                acc += T[a, k] * Ainv[b, k]
+                for l2 in range(6):
+                    acc += Ainv[a, k] * Bn[k, l2] * Ainv[l2, b]
             out[a, b] = acc
     return True
 
