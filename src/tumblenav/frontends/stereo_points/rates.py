@@ -156,8 +156,8 @@ def _fit_factors(h: int) -> tuple[float, float, float]:
     """For the slope fits over ``j = -h..h``: the variance factors ``sum_j c_j^2`` of the
     linear and the linear-plus-cubic fit (the slope's variance is that times
     ``sigma_psi^2 / dt^2``) and the (-dimensionless) bias of the linear fit per unit cubic
-    coefficient, ``sum_j c_j j^3``."""
+    coefficient, ``sum_j c_j j^3`` (from :func:`gls.fit_coefficients`; the fits themselves
+    now weight each attitude's covariance, ``_window_sum``)."""
     j = np.arange(-h, h + 1, dtype=float)
-    cl = j / np.sum(j * j)
-    cc = np.linalg.pinv(np.stack([j, j**3], 1))[0]
+    cl, cc = fit_coefficients(h)
     return float(np.sum(cl**2)), float(np.sum(cc**2)), float(np.sum(cl * j**3))

@@ -42,7 +42,8 @@ def _refine_template(
     centre: one pass of the fit from it).
 
     Returns the refined template (B,N,3) (the previous one where the fit failed) and its
-    covariance, G's attitude and covariance (B,upto,...) with it, and ``refined`` updated."""
+    covariance, G's attitude and covariance (B,upto,...) with it, ``refined`` updated, and
+    the points' own noise's share of G's covariance (``weighted_kabsch``'s ``noise``)."""
     B, n, N = usable.shape
     valid = np.all(np.isfinite(R_GI), axis=(-1, -2))
     new_t = template.copy()
