@@ -13,11 +13,11 @@ Usage::
 
     python hu_rate_errors.py SCENARIO RUNS [T0 T1]
 
-hu_selfocc: runs 0, 1, 2: whole 0.5-1.05, noise share 0.95-1.1 (2.3 in one window); run 173:
-whole 0.18-0.30, noise share 1.6-19 (the template's share matters there); run 96 at
-93.5-94.4 s, before the visible features change at 94.5 s (G's sigma 2.8 -> 55 mrad): rate
-errors of 0.1 rad/s at 3400 times their stated variance with the centre's covariance taken
-for the window, 8.8 with each attitude's.
+hu_selfocc (7aea559's code): runs 0, 1, 2: whole 0.49-0.79, noise share 0.92-1.12 (1.80 in
+one window); run 173: whole 0.16-0.30, noise share 1.0-4.6 (the template's share matters
+there); run 96 at 93.5-94.4 s, before the visible features change at 94.5 s (G's sigma 2.8
+-> 55 mrad): rate errors up to 0.12 rad/s at 14-3400 times their stated variance with the
+centre's covariance taken for the window (f60a9e3's code), at most 8.8 with each attitude's.
 """
 
 import sys

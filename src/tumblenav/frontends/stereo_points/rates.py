@@ -42,9 +42,9 @@ def rates_and_covariance(
     covariance with its coefficient squared (``_window_sum``; before issue 18's twenty-fourth
     session the centre's was taken for the whole window, which at a change of the visible
     features, where G's covariance grows twentyfold from one epoch to the next, stated the
-    rates of the epochs before it 30-60 times too precise: hu_selfocc run 96, 94.5 s, rate
-    errors of 0.1 rad/s entered the inertia least squares at full weight and moved its
-    moments by 0.025).
+    rates of the epochs before it far too precise: hu_selfocc run 96, 94.5 s, rate errors up
+    to 0.12 rad/s at up to 3400 times their stated variance entered the inertia least
+    squares at full weight and moved its moments by 0.025).
 
     ``unbiased`` (bool or (B,)): the cubic fit wherever it exists, in those runs (the rows of
     a growing least-squares batch: there the noise averages out but the line's bias does
@@ -105,8 +105,9 @@ def rates_noise_cov(cov_G_noise: Array, cubic: NDArray[np.bool_], dt: float, h: 
     Why (issue 18): the G attitudes' covariance also holds the template's errors, stated
     conservatively (bounded by their trace) and fixed in G, so they turn into rate errors
     only as the view changes. Propagated as if independent between epochs they made the
-    rates' stated noise 3-7 times its variance against the truth on hu_selfocc (one axis
-    0.043 rad/s against 0.006 over the first 30 s), and the inertia least squares'
+    rates' stated noise 1.3-2 times its variance against the truth on ordinary hu_selfocc
+    runs and 3-6 times on run 173 (docs/results/consistency/prototype/hu_rate_errors.py),
+    and the inertia least squares'
     errors-in-variables compensation, which takes that noise as the regressors', took away
     more than all of the information along one direction (``inertia_ls``)."""
     C = np.nan_to_num(cov_G_noise) / dt**2
