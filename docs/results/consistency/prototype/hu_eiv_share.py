@@ -51,7 +51,7 @@ truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
 tracks, _ = stages.prepare(meas, ("stereo_points",), None)
 tun = parse_tuning(sc.estimator.tuning, True)
 q_r = sc.process_noise.rotational_rad2_s4 if sc.process_noise else 0.0
-F.frontend([tracks], tun, q_r)
+F.frontend([tracks], tun, q_r, disturbed=sc.process_noise.disturb_truth)
 sel, (N, r, bb, cnt, V, E, Nc, rc, M, Ew, Sw), dt = sums[0]  # the last template's rows
 I_G = inertia[-1][0]  # the solutions' inertia, at the same epochs
 for si, kk in enumerate(sel):

@@ -33,7 +33,7 @@ truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
 tracks, _ = stages.prepare(meas, ("stereo_points",), None)
 tun = parse_tuning(sc.estimator.tuning, True)
 q_r = sc.process_noise.rotational_rad2_s4 if sc.process_noise else 0.0
-fe = F.frontend([tracks], tun, q_r)
+fe = F.frontend([tracks], tun, q_r, disturbed=sc.process_noise.disturb_truth)
 t = fe.t
 p, _, _ = branch_statistics(fe.R_GT, fe.cov_frame)
 R = fe.R_GT[0]

@@ -48,7 +48,7 @@ res = {t: [] for t in times}
 for k in runs:
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
     tracks, _ = stages.prepare(meas, ("stereo_points",), None)
-    fe = F.frontend([tracks], tun, q_r)
+    fe = F.frontend([tracks], tun, q_r, disturbed=sc.process_noise.disturb_truth)
     n = fe.R_GT.shape[1]
     dt = fe.t[1] - fe.t[0]
     om = fe.omega_G[0]

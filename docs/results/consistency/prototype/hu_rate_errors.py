@@ -52,7 +52,7 @@ q_r = sc.process_noise.rotational_rad2_s4 if sc.process_noise else 0.0
 for k in runs:
     truth, meas = simulate(sc, run_seed(sc.montecarlo.seed, k))
     tracks, _ = stages.prepare(meas, ("stereo_points",), None)
-    F.frontend([tracks], tun, q_r)
+    F.frontend([tracks], tun, q_r, disturbed=sc.process_noise.disturb_truth)
     om, cf, cn = cap["om"][0], cap["cf"][0], cap["cn"][0]
     n = om.shape[0]
     dt = truth.t[1] - truth.t[0]

@@ -100,7 +100,7 @@ def run_filter(
     covered = tun.dpacf_measurement == "attitude" and tun.gate_probability is None
     if engine == "compiled" and not covered:
         raise ValueError("the compiled engine covers dpacf_measurement 'attitude' without a gate")
-    fe_all = frontend(meas_list, tun, s_r2)
+    fe_all = frontend(meas_list, tun, s_r2, disturbed=scenario.process_noise.disturb_truth)
     fe = filter_view(fe_all, tun.max_dpacf_sigma_rad)
     B, n, N = fe.usable.shape
     lay = layout(N)
@@ -508,12 +508,19 @@ def filter_view(
     return view
 
 
-def frontend(meas_list, tun: HuTuning, q_r: float = 0.0) -> stereo_points.PointsFrontEnd:
+def frontend(
+    meas_list, tun: HuTuning, q_r: float = 0.0, disturbed: bool = False
+) -> stereo_points.PointsFrontEnd:
     """The stereo-points front end on B runs, with the settings ``tun.frontend`` and the
     disturbance torque the filter assumes (``q_r``, rad^2/s^3, its sigma_r^2: the inertia
     least squares' momentum random-walks with it), unless ``tun.frontend.ls_torque_rad2_s4``
-    says otherwise."""
+    says otherwise; with its default 'auto' only where the scenario states that the
+    disturbance is real (``disturbed``: process_noise.disturb_truth), else torque-free (Hu
+    2024 eq. 10)."""
     fe = tun.frontend
+    torque = fe.ls_torque_rad2_s4
+    if torque == "auto":
+        torque = "process_noise" if disturbed else 0.0
     out = stereo_points.process(
         meas_list,
         stereo_points.FrontEndSettings(
@@ -524,7 +531,7 @@ def frontend(meas_list, tun: HuTuning, q_r: float = 0.0) -> stereo_points.Points
             template_refine_s=tuple(np.atleast_1d(np.asarray(fe.template_refine_s, float))),
             unbiased_last=bool(fe.ls_unbiased_rates),
             unbiased_early=fe.ls_unbiased_rates is True,
-            q_r=float(q_r if fe.ls_torque_rad2_s4 == "process_noise" else fe.ls_torque_rad2_s4),
+            q_r=float(q_r if torque == "process_noise" else torque),
         ),
     )
     out.R_LI = rot.quat_to_matrix(np.stack([m.q_LI for m in meas_list]))

@@ -94,8 +94,8 @@ class StereoPointsTuning(BaseModel):
         "throughout",
     )
 
-    ls_torque_rad2_s4: float | Literal["process_noise"] = Field(
-        0.0,
+    ls_torque_rad2_s4: float | Literal["process_noise", "auto"] = Field(
+        "auto",
         description="the disturbance torque the inertia least squares allows for "
         "(rad^2/s^3, the angular acceleration's spectral density about the largest "
         "moment's axis, as process_noise.rotational_rad2_s4): its angular momentum "
@@ -103,7 +103,12 @@ class StereoPointsTuning(BaseModel):
         "(stereo_points.gls); 'process_noise': the filter's sigma_r2 (by default the "
         "scenario's process_noise); 0: torque-free, Hu 2024 eq. 10 (the paper's least "
         "squares; with the paper's sigma_r2 = 2.5e-5 allowed for, the frame's 1-sigma stays "
-        "above 0.2 rad over hu2024's 200 s: the torque hides the inertia)",
+        "above 0.2 rad over hu2024's 200 s: the torque hides the inertia); 'auto' (the "
+        "default since issue 18's twenty-fifth session; 0 before): 'process_noise' where the "
+        "scenario states that its process noise is a real disturbance "
+        "(process_noise.disturb_truth), else 0. With 0 on a disturbed target the frame was "
+        "over-confident (a scenario nobody tuned for: attitude block NEES/dof 28, whole "
+        "state 4.8e4 over 20 runs; docs/results/consistency.md)",
     )
 
     @field_validator("ls_torque_rad2_s4")
