@@ -224,17 +224,30 @@ def run_filter(
     r = run_engine(allr, init.k0, init.x0, init.P0)
     out_x[:], out_P[:], nis[:], nis_dof[:] = r["x"], r["P"], r["nis"], r["nis_dof"]
     rejected[:], diverged[:], flips[:] = r["rejected"], r["diverged"], r["flips"]
-    # A run that lost track (its state left every physical range: _diverged) is started
-    # again from the measurements after that epoch, as at the start (tumblenav default;
-    # ekf-baseline after a long occlusion), at most MAX_REINITS times; counted in
-    # ``reinitialised`` and the epochs of each restart in ``reinit_epochs``
+    # A run that lost track (its state left every physical range: _diverged; or, for
+    # ekf-dpacf with restart_on_alarm, its lost-track alarm fired since its last start:
+    # nis_alarm) is started again from the measurements after that epoch, as at the start
+    # (tumblenav default; ekf-baseline after a long occlusion), at most MAX_REINITS times;
+    # counted in ``reinitialised`` and the epochs of each restart in ``reinit_epochs``
     reinit_at: list[list[int]] = [[] for _ in range(B)]
+    started = init.k0.copy()  # each run's last start (-1: none)
     for _ in range(MAX_REINITS):
-        lost = np.flatnonzero(diverged)
+        k_lost = np.full(B, -1)  # the epoch after which each lost run starts again
+        for b in np.flatnonzero(diverged):
+            fin = np.isfinite(out_x[b, :, 0])
+            k_lost[b] = n - int(np.argmax(fin[::-1])) if fin.any() else 0
+        if use_dpacf and tun.restart_on_alarm:
+            for b in np.flatnonzero(~diverged & (started >= 0)):
+                since = np.arange(n) >= started[b]  # the windows after the last start only
+                alarm = nis_alarm(
+                    fe.t, np.where(since, nis[b], 0.0), np.where(since, nis_dof[b], 0)
+                )
+                if alarm.any():
+                    k_lost[b] = int(np.argmax(alarm)) + 1
+        lost = np.flatnonzero(k_lost >= 0)
         if not len(lost):
             break
-        fin = np.isfinite(out_x[lost, :, 0])
-        k_div = np.where(fin.any(axis=1), n - np.argmax(fin[:, ::-1], axis=1), 0)
+        k_div = k_lost[lost]
         sub = _subset(fe, lost)
         re = _initial_state(sub, tun, use_dpacf, lay, n_orbit, frame_in_P0=not consider,
                             refine=refine, not_before=k_div, q_t=s_t2)  # fmt: skip
@@ -255,6 +268,10 @@ def run_filter(
             flips[b] += r["flips"][j]
             diverged[b] = r["diverged"][j]
             reinit_at[b].append(k)
+            started[b] = k
+        # runs whose alarm fired and that found no new start keep what they had (their alarm
+        # is not tested again)
+        started[lost[~go]] = -1
     out = pack()
     out["reinit_epochs"] = reinit_at
     return out

@@ -302,6 +302,44 @@ def refine_start_pose(
 TEMPLATE_VAR_M2 = 1e-4
 
 
+def template_features_cov(
+    cov_fit: Array, fit: NDArray[np.bool_], kn: NDArray[np.bool_], unseen_sigma_m: float
+) -> Array:
+    """(3N, 3N) covariance (in G) of the start's features about the mass centre: the joint
+    fit's (:func:`features_from_rotation`, ``cov_fit`` (3N, 3N), nonzero on the ``fit``
+    features); a feature catalogued (``kn``) but not fitted (seen at fewer than three of the
+    window's epochs) is its template less the mass centre the fit puts in the template,
+    ``f_i = g_i - c``, ``c = mean_fit(g_j - f_j)``, so its error ``dg_i - mean_fit(dg_j) +
+    S df_fit`` (``S``: the mean over the fitted features) carries the fit's common shift:
+    ``S C S^T`` on every such feature and between them, ``S C`` with the fitted ones, plus
+    the templates' own 1 cm (``TEMPLATE_VAR_M2``; its mean over the fitted ones common to
+    all); features never seen take ``unseen_sigma_m``^2.
+
+    Why (tumblenav, issue 18, twenty-fifth session): these features had the template's
+    1 cm alone, independent of the fit. Under self-occlusion the features in view at the
+    start may all be ones the window hardly saw (consistency/hu_conv14 run 10 at 148 s:
+    three fitted, six in view, none of them fitted, the fit's common shift at a 1-sigma of
+    0.28-0.71 m), and the start then placed the mass centre 0.48 m off at a 1-sigma of
+    0.035 m (position NEES/dof 578; 1.04 now)."""
+    N = len(kn)
+    idx = np.flatnonzero(fit)
+    tmpl = kn & ~fit
+    A = np.zeros((3 * N, 3 * N))  # feature errors as a linear map of the fitted ones
+    for i in idx:
+        A[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = np.eye(3)
+    if len(idx):
+        S = np.kron(np.ones((1, len(idx))) / len(idx), np.eye(3))
+        sel = (3 * idx[:, None] + np.arange(3)).ravel()
+        for i in np.flatnonzero(tmpl):
+            A[3 * i : 3 * i + 3, sel] = S
+    F = A @ cov_fit @ A.T
+    t3 = np.repeat(tmpl, 3)
+    common = TEMPLATE_VAR_M2 / max(len(idx), 1)  # the fitted templates' mean, in c
+    F += np.where(t3[:, None] & t3[None], np.kron(np.ones((N, N)), common * np.eye(3)), 0.0)
+    var = np.where(tmpl, TEMPLATE_VAR_M2, np.where(kn, 0.0, unseen_sigma_m**2))
+    return F + np.kron(np.diag(var), np.eye(3))
+
+
 def pose_feature_sensitivity(
     C6: Array, R_LT: Array, f: Array, cov: Array, use: NDArray[np.bool_]
 ) -> Array:
@@ -390,13 +428,8 @@ def _initial_state(
         F = None  # with the joint fit: the features' covariance (3N, 3N, in T)
         if joint is not None:
             fG = np.where(fit_kn[:, None], joint[0], fG)
-            # the fit's covariance (in T); features catalogued but seen at fewer than three
-            # of the window's epochs keep their template (1 cm), unseen ones the prior
-            fit3 = np.repeat(fit_kn, 3)
             RT = np.kron(np.eye(N), R_TG)
-            F = RT @ np.where(fit3[:, None] & fit3[None], joint[1], 0.0) @ RT.T
-            var = np.where(fit_kn, 0.0, np.where(kn, TEMPLATE_VAR_M2, tun.p0_unseen_feature_m**2))
-            F += np.kron(np.diag(var), np.eye(3))
+            F = RT @ template_features_cov(joint[1], fit_kn, kn, tun.p0_unseen_feature_m) @ RT.T
         f = np.where(kn[:, None], (R_TG @ fG.T).T, 0.0)
         # r such that the predicted features match the measured ones on average:
         # r = mean_i (p_L,i - R_LT f_i) over the visible, catalogued features (weighted)

@@ -192,6 +192,17 @@ class HuTuning(BaseModel):
         "enough for this long (a motion that leaves the ratios poorly determined must not "
         "keep the filter from starting)",
     )
+    restart_on_alarm: bool = Field(
+        True,
+        description="ekf-dpacf: a run whose lost-track alarm fires (its innovations over "
+        "the last 10 s fail their chi-square test at 1e-4, skipped.nis_alarm) is started "
+        "again from the measurements after that epoch, as one whose state left every "
+        "physical range is (tumblenav default since issue 18's twenty-fifth session; "
+        "ekf-baseline, whose free frame raises the alarm throughout, never): on a scenario "
+        "nobody tuned for (consistency/hu_conv14) two of 20 runs started from a front-end "
+        "frame 7 deg off at a 1-sigma of 1 deg and held their inertia 0.2-0.6 off at a "
+        "1-sigma of 0.002-0.02 to the end (docs/results/consistency.md)",
+    )
     frame_error_dynamics_s: float = Field(
         60.0,
         ge=0,
