@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from tumblenav import rotations as rot
 from tumblenav.estimators.base import get
-from tumblenav.estimators.chang2021.filter import disturbance_rate_noise
+from tumblenav.estimators.chang2021.filter import disturbance_rate_noise, torque_rate_noise
 from tumblenav.estimators.chang2021.slam import NA, StateSteps, measurement_jacobian
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 from tumblenav.estimators.context import context_from_scenario
@@ -29,14 +30,20 @@ def _scenario(duration: float, **upd):
 
 
 def test_rate_noise_follows_the_scenario():
-    """The disturbance torque's q_r (about the axis of largest moment) -> an isotropic rate
-    random walk: (1 + k)^2 q_r for an unknown inertia, the mean (I_max / I_i)^2 q_r for a
-    given one; an explicit rate_noise_rad2_s3 wins; the CW's q from the scenario unless set."""
+    """The disturbance torque's q_r (about the axis of largest moment) -> the rate random
+    walk: (1 + k)^2 q_r on every axis for an unknown inertia; for a given (or estimated)
+    one q_r I_max^2 J^-2, (I_max / I_i)^2 q_r about each principal axis (twenty-fifth
+    session; the mean over the axes, isotropic, before); an explicit rate_noise_rad2_s3
+    wins; the CW's q from the scenario unless set."""
     assert disturbance_rate_noise(PoseTuning(), 2e-8) == pytest.approx(2e-8 * 1.3**2)
     assert disturbance_rate_noise(PoseTuning(inertia_asymmetry=0.0), 2e-8) == pytest.approx(2e-8)
     tun = PoseTuning(inertia="given", inertia_kg_m2=[120.0, 100.0, 80.0])
-    want = 2e-8 * np.mean([1.0, 1.2**2, 1.5**2])
-    assert disturbance_rate_noise(tun, 2e-8) == pytest.approx(want)
+    want = 2e-8 * np.diag([1.0, 1.2**2, 1.5**2])
+    assert np.allclose(disturbance_rate_noise(tun, 2e-8), want, rtol=1e-12, atol=0)
+    # any frame: the torque's walk turns with the tensor, and any scale of the tensor
+    R = Rotation.from_rotvec([0.3, -0.7, 0.2]).as_matrix()
+    J = R @ np.diag([3.0, 2.5, 2.0]) @ R.T
+    assert np.allclose(torque_rate_noise(2e-8, 7.0 * J), R @ want @ R.T, rtol=1e-10, atol=0)
     assert disturbance_rate_noise(PoseTuning(rate_noise_rad2_s3=3e-9), 2e-8) == 3e-9
     meas = None
     s = StateSteps(meas=meas, tun=PoseTuning(), n_orbit=0.0, q_rot=1e-8, q_trans=4e-9)

@@ -71,14 +71,14 @@ Array = NDArray[np.float64]
 _MAX_SIGMA = 1e6  # a covariance beyond this (or not finite) means the run diverged
 
 
-def disturbance_rate_noise(tun: PoseTuning, q_r: float) -> float:
-    """The rate random walk (rad^2/s^3, per axis of That) that the scenario's disturbance
-    torque causes (``process_noise.rotational_rad2_s4`` = ``q_r``: the angular acceleration's
+def disturbance_rate_noise(tun: PoseTuning, q_r: float) -> float | Array:
+    """The rate random walk (rad^2/s^3, in That) that the scenario's disturbance torque
+    causes (``process_noise.rotational_rad2_s4`` = ``q_r``: the angular acceleration's
     spectral density about the axis of largest moment; about axis ``i`` it is ``q_r (I_max /
-    I_i)^2``, :mod:`tumblenav.dynamics.disturbances`). That is not the principal frame and the
-    inertia is unknown, so one isotropic value: the mean over the axes of ``(I_max / I_i)^2``,
-    from the given inertia or, with inertia 'sphere', for moments ``k`` (inertia_asymmetry)
-    apart, ``(1 + k)^2`` (tumblenav default). ``rate_noise_rad2_s3``, when set, replaces it."""
+    I_i)^2``, :mod:`tumblenav.dynamics.disturbances`): with a given inertia the (3, 3)
+    :func:`torque_rate_noise`; with inertia 'sphere' (unknown, That not the principal frame)
+    one isotropic value for moments ``k`` (inertia_asymmetry) apart, ``q_r (1 + k)^2``
+    (tumblenav default). ``rate_noise_rad2_s3``, when set, replaces it."""
     if tun.rate_noise_rad2_s3 is not None:
         return float(tun.rate_noise_rad2_s3)
     if tun.inertia == "given":
@@ -86,14 +86,21 @@ def disturbance_rate_noise(tun: PoseTuning, q_r: float) -> float:
     return float(q_r * (1.0 + tun.inertia_asymmetry) ** 2)
 
 
-def torque_rate_noise(q_r: float, inertia: Array) -> float:
-    """``q_r`` times the mean over the principal axes of ``(I_max / I_i)^2`` of ``inertia``
-    (3, 3): the isotropic torque's rate random walk as one value per axis of That."""
-    ev = np.linalg.eigvalsh(inertia)
-    return float(q_r * np.mean((ev.max() / ev) ** 2))
+def torque_rate_noise(q_r: float, inertia: Array) -> Array:
+    """(3, 3) rate random walk of an isotropic torque on ``inertia`` (3, 3, in That, any
+    scale): the torque's density ``q_tau = q_r I_max^2`` (``q_r`` about the axis of largest
+    moment) becomes ``q_tau J^-1 J^-T = q_r I_max^2 J^-2`` on the rate, about each principal
+    axis ``q_r (I_max / I_i)^2``. Before issue 18's twenty-fifth session the mean of those
+    over the axes, isotropic: on a scenario nobody tuned for (inertia (30, 20, 45), the
+    smallest axis' walk 5.1 q_r against a stated 2.8 q_r) ekf-pose's rate was over-confident
+    (block NEES/dof 1.9, the attitude's 2.7 over runs 0-5; docs/results/consistency.md)."""
+    ev, V = np.linalg.eigh(0.5 * (inertia + inertia.T))
+    return np.asarray(q_r * (V * (ev.max() / ev) ** 2) @ V.T)
 
 
-def rate_process_noise(x: Array, tun: PoseTuning, n: float, q_dist: float = 0.0) -> float:
+def rate_process_noise(
+    x: Array, tun: PoseTuning, n: float, q_dist: float | Array = 0.0
+) -> float | Array:
     """Spectral density (rad^2/s^3) of the rate random walk: with inertia 'sphere' the
     unmodelled Euler term, ``2 k^2 |omega_TI|^3 / 27`` (``k``: inertia_asymmetry; the term's
     per-axis RMS ``k |omega|^2 / 3`` over a correlation time ``1/|omega|``), plus the
@@ -127,7 +134,7 @@ class TrackSteps:
     q_trans: float = 0.0  # the scenario's process_noise.translational_m2_s4 (m^2/s^3)
 
     @functools.cached_property
-    def q_rate_dist(self) -> float:
+    def q_rate_dist(self) -> float | Array:
         """The disturbance torque's rate random walk (:func:`disturbance_rate_noise`)."""
         return disturbance_rate_noise(self.tun, self.q_rot)
 
@@ -138,7 +145,7 @@ class TrackSteps:
         a = self.tun.accel_noise_m2_s3
         return float(self.q_trans if a is None else a)
 
-    def rate_noise(self, x: Array, inertia: Array | None = None) -> float:
+    def rate_noise(self, x: Array, inertia: Array | None = None) -> float | Array:
         """The rate random walk's spectral density at ``x`` (:func:`rate_process_noise`); with
         inertia 'estimated' the disturbance's share from the current estimate ``inertia``."""
         q_dist = self.q_rate_dist

@@ -149,17 +149,23 @@ def propagate_mean(x: Array, dt: float, inertia: Array, n: float) -> Array:
     return out
 
 
-def process_noise_density(q_rate: float, q_accel: float) -> Array:
-    """Continuous ``G Q G^T`` (15, 15) of eq. 25: ``q_rate`` on the rate (rad^2/s^3),
-    ``q_accel`` on the velocity (m^2/s^3)."""
+def process_noise_density(q_rate: float | Array, q_accel: float) -> Array:
+    """Continuous ``G Q G^T`` (15, 15) of eq. 25: ``q_rate`` on the rate (rad^2/s^3; one
+    value per axis, or (3, 3) in That), ``q_accel`` on the velocity (m^2/s^3)."""
     Qc = np.zeros((DIM, DIM))
-    Qc[E_RATE, E_RATE] = q_rate * np.eye(3)
+    Qc[E_RATE, E_RATE] = q_rate * np.eye(3) if np.ndim(q_rate) == 0 else q_rate
     Qc[E_VEL, E_VEL] = q_accel * np.eye(3)
     return Qc
 
 
 def propagate(
-    x: Array, P: Array, dt: float, inertia: Array, n: float, q_rate: float, q_accel: float
+    x: Array,
+    P: Array,
+    dt: float,
+    inertia: Array,
+    n: float,
+    q_rate: float | Array,
+    q_accel: float,
 ) -> tuple[Array, Array]:
     """EKF prediction over ``dt``: the mean by :func:`propagate_mean`, the covariance by
     ``Phi P Phi^T + Q_d`` with ``(Phi, Q_d)`` from :func:`discretise` (Chang 2021 eq. 13, 25;

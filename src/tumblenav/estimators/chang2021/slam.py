@@ -28,7 +28,7 @@ observable, so nothing is measured twice.
   unobservable), is ``J = I + D(j)`` with ``D`` symmetric and traceless, and its five
   parameters ``j`` follow the pose in ``P`` (rows 12-16, before the features; the mean travels
   in the memo as the map does). They start at the sphere (``j = 0``) with a 1-sigma of
-  ``inertia_sigma`` (0.05) each, have no process noise (a rigid body), and enter eq. 3 through
+  ``inertia_sigma`` (0.15) each, have no process noise (a rigid body), and enter eq. 3 through
   ``d(domega/dt)/dj`` (:func:`euler_inertia_jacobian`). Why: with a sphere, the nutation
   (a deterministic drift of the body rate) is a random walk to the filter, the rate is
   conservative and the errors it leaves are taken up by the mass centre (chang_inertia per
