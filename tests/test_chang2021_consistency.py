@@ -164,3 +164,31 @@ def test_replay_relinearises_the_maps_jacobians_at_range():
             worst_att = max(worst_att, float(np.linalg.norm(rot.log_map(R_est.T @ R_true))))
         errs[relin] = worst_att
     assert errs[True] < 0.6 * errs[False]
+
+
+def test_inertia_prior_widens_where_one_epoch_fixes_the_attitude(monkeypatch):
+    """inertia_sigma 'auto' (the default since the twenty-fifth session): 0.15 where one
+    epoch's features fix the attitude to within epoch_attitude_warn_deg over the start window
+    (a target 0.42 from the sphere was over-confident under 0.05: chang_range15), 0.05 where
+    they do not (the built-in chang2021 at 59 m on images, 15 deg per epoch: attitude 6.5 ->
+    31 deg at 0.15); an explicit value wins; the prior enters the start's covariance."""
+    from types import SimpleNamespace
+
+    from tumblenav.estimators.chang2021 import slam
+
+    start = SimpleNamespace(k0=0, k=10)
+    seen = {"deg": 2.0}
+    monkeypatch.setattr(slam, "start_attitude_sigma_deg", lambda tracks, k0, k1: seen["deg"])
+    s = StateSteps(meas=None, tun=PoseTuning(), n_orbit=0.0)
+    monkeypatch.setattr(StateSteps, "tracks", None)
+    assert s.inertia_sigma_at(start) == slam.INERTIA_SIGMA_WIDE == 0.15
+    seen["deg"] = 15.3
+    assert s.inertia_sigma_at(start) == slam.INERTIA_SIGMA_NARROW == 0.05
+    seen["deg"] = float("nan")
+    assert s.inertia_sigma_at(start) == 0.05
+    s2 = StateSteps(meas=None, tun=PoseTuning(inertia_sigma=0.3), n_orbit=0.0)
+    assert s2.inertia_sigma_at(start) == 0.3
+    P = s2._with_inertia(np.eye(12), start)
+    assert P.shape == (NA, NA) and np.allclose(np.diag(P)[12:], 0.09)
+    with pytest.raises(ValueError):
+        PoseTuning(inertia_sigma=-1.0)

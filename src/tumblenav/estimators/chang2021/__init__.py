@@ -28,7 +28,7 @@ from tumblenav.errors import InputError
 from tumblenav.estimators.base import EstimateHistory, fold, parse_tuning, register
 from tumblenav.estimators.chang2021.filter import PoseMemo, PoseSteps
 from tumblenav.estimators.chang2021.model import LAYOUT
-from tumblenav.estimators.chang2021.qmethod import epoch_attitude_sigma
+from tumblenav.estimators.chang2021.qmethod import start_attitude_sigma_deg
 from tumblenav.estimators.chang2021.slam import (
     LAYOUT_POSE,
     MapMemo,
@@ -138,7 +138,7 @@ class PoseEKF:
                 ev = np.linalg.eigvalsh(J)
                 info["inertia_That"] = J.tolist()
                 info["inertia_principal_ratios"] = [float(v) for v in ev[::-1] / ev.max()]
-            sig = _start_attitude_sigma_deg(steps.tracks, s.k0, s.k)
+            sig = start_attitude_sigma_deg(steps.tracks, s.k0, s.k)
             info["epoch_attitude_sigma_deg"] = sig
             if sig > tun.epoch_attitude_warn_deg:
                 info["warnings"] = [
@@ -159,16 +159,6 @@ class PoseEKF:
             skipped=skipped,
             info=info,
         )
-
-
-def _start_attitude_sigma_deg(tracks, k0: int, k1: int) -> float:
-    """Median over the start window's epochs of one epoch's attitude 1-sigma (deg, about the
-    axes across the line of sight; :func:`.qmethod.epoch_attitude_sigma`)."""
-    sig = [
-        epoch_attitude_sigma(tracks.p[k, tracks.ok_p[k]], tracks.P[k, tracks.ok_p[k]])
-        for k in range(k0, k1 + 1)
-    ]
-    return float(np.degrees(np.median(sig))) if sig else float("nan")
 
 
 register("ekf-pose")(PoseEKF)

@@ -153,3 +153,14 @@ def epoch_attitude_sigma(p: ArrayLike, P: ArrayLike) -> float:
     if not lever2 > 0.0:
         return float("inf")
     return float(np.sqrt(var_depth / lever2))
+
+
+def start_attitude_sigma_deg(tracks, k0: int, k1: int) -> float:
+    """Median over the start window's epochs ``k0 .. k1`` of one epoch's attitude 1-sigma
+    (deg, about the axes across the line of sight; :func:`epoch_attitude_sigma`) from
+    ``tracks`` (:class:`.measurements.FeatureTracks`: ``p``, ``P``, ``ok_p``)."""
+    sig = [
+        epoch_attitude_sigma(tracks.p[k, tracks.ok_p[k]], tracks.P[k, tracks.ok_p[k]])
+        for k in range(k0, k1 + 1)
+    ]
+    return float(np.degrees(np.median(sig))) if sig else float("nan")

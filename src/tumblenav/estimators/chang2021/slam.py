@@ -28,7 +28,7 @@ observable, so nothing is measured twice.
   unobservable), is ``J = I + D(j)`` with ``D`` symmetric and traceless, and its five
   parameters ``j`` follow the pose in ``P`` (rows 12-16, before the features; the mean travels
   in the memo as the map does). They start at the sphere (``j = 0``) with a 1-sigma of
-  ``inertia_sigma`` (0.15) each, have no process noise (a rigid body), and enter eq. 3 through
+  ``inertia_sigma`` (by default 0.15, or 0.05 where one epoch fixes the attitude poorly: :meth:`StateSteps.inertia_sigma_at`) each, have no process noise (a rigid body), and enter eq. 3 through
   ``d(domega/dt)/dj`` (:func:`euler_inertia_jacobian`). Why: with a sphere, the nutation
   (a deterministic drift of the body rate) is a random walk to the filter, the rate is
   conservative and the errors it leaves are taken up by the mass centre (chang_inertia per
@@ -120,6 +120,7 @@ from tumblenav.estimators.chang2021.model import (
     propagate_mean,
     rate_derivative,
 )
+from tumblenav.estimators.chang2021.qmethod import start_attitude_sigma_deg
 from tumblenav.estimators.chang2021.tuning import PoseTuning
 
 Array = NDArray[np.float64]
@@ -136,6 +137,9 @@ LAYOUT_POSE = StateLayout(
 NP = 12  # pose error dimension
 NX = 13  # pose nominal dimension
 NI = 5  # inertia parameters (inertia: estimated; zero covariance otherwise)
+# their prior 1-sigma with inertia_sigma 'auto' (StateSteps.inertia_sigma_at)
+INERTIA_SIGMA_WIDE = 0.15
+INERTIA_SIGMA_NARROW = 0.05
 NA = NP + NI  # where the features start in P
 _J = slice(NP, NA)
 _J_BASIS = INERTIA_BASIS  # J = I + D(j) (model.INERTIA_BASIS)
@@ -636,7 +640,7 @@ class StateSteps(TrackSteps):
             return self._batch(s, x, P)
         if self.tun.start_replay:
             return self._replay(s, x, P)
-        P = self._with_inertia(P)
+        P = self._with_inertia(P, s)
         ids, s_map, P = self._augment(x, P, np.zeros(0, np.int64), np.zeros((0, 6)), k)
         memo = MapMemo(ids, s_map[:, :3], s_map[:, 3:], s)
         return Belief(float(self.meas.t[k]), x, P, LAYOUT_POSE, memo), StepInfo()
@@ -663,7 +667,7 @@ class StateSteps(TrackSteps):
             rv0,
             self.n_orbit,
             estimate_inertia=self.tun.inertia == "estimated",
-            inertia_sigma=self.tun.inertia_sigma,
+            inertia_sigma=self.inertia_sigma_at(s),
             centre_sigma=self.tun.prior_mass_centre_sigma_m,
             noise_scale=self.tun.measurement_noise_scale * self.track_ratio,
             first_noise_scale=1.0,
@@ -822,7 +826,7 @@ class StateSteps(TrackSteps):
             P[_W, _W] = s.P_omega_k0 * self.tun.start_rate_inflation
         P[_R, _R] = P_end[_R, _R]
         P[_V, _V] = P_end[_V, _V]
-        P0 = self._with_inertia(P)
+        P0 = self._with_inertia(P, s)
         b: Belief | None = None
         lin = lin0
         for _ in range(self.tun.start_passes):
@@ -842,15 +846,29 @@ class StateSteps(TrackSteps):
         assert b is not None
         return self._release_axis(b), StepInfo()
 
-    def _with_inertia(self, P: Array) -> Array:
+    def _with_inertia(self, P: Array, s: Start) -> Array:
         """The pose covariance (12, 12) with the inertia parameters' prior (17, 17): with
-        inertia 'estimated' each of the five has the variance inertia_sigma^2 about the
-        sphere (moments that differ by that fraction), else zero (not estimated)."""
+        inertia 'estimated' each of the five has the variance :meth:`inertia_sigma_at`^2
+        about the sphere (moments that differ by that fraction), else zero (not estimated)."""
         out = np.zeros((NA, NA))
         out[:NP, :NP] = P
         if self.tun.inertia == "estimated":
-            out[_J, _J] = self.tun.inertia_sigma**2 * np.eye(NI)
+            out[_J, _J] = self.inertia_sigma_at(s) ** 2 * np.eye(NI)
         return out
+
+    def inertia_sigma_at(self, s: Start) -> float:
+        """The inertia parameters' prior 1-sigma for the start ``s``: the tuning's
+        ``inertia_sigma``; with 'auto', INERTIA_SIGMA_WIDE where one epoch's features fix the
+        attitude to within ``epoch_attitude_warn_deg`` over the start window
+        (:func:`.qmethod.start_attitude_sigma_deg`), else INERTIA_SIGMA_NARROW (the nutation
+        the inertia is learnt from is then buried in the tracks' errors; tuning.py says what
+        was measured)."""
+        v = self.tun.inertia_sigma
+        if v != "auto":
+            return float(v)
+        sig = start_attitude_sigma_deg(self.tracks, s.k0, s.k)
+        ok = np.isfinite(sig) and sig <= self.tun.epoch_attitude_warn_deg
+        return INERTIA_SIGMA_WIDE if ok else INERTIA_SIGMA_NARROW
 
     def inertia_matrix(self, memo: MapMemo) -> Array:
         """The dynamics' inertia: the estimate (inertia 'estimated') or the tuning's."""

@@ -233,20 +233,33 @@ class PoseTuning(BaseModel):
         description="with inertia 'given': principal moments [I1, I2, I3] or the 3x3 tensor "
         "in That (kg m^2; only ratios matter)",
     )
-    inertia_sigma: float = Field(
-        0.15,
-        gt=0,
+    inertia_sigma: float | Literal["auto"] = Field(
+        "auto",
         description="with inertia 'estimated': the 1-sigma of each of the five inertia "
         "parameters about the sphere at the start (J = I + D, D traceless; tumblenav "
-        "default; 0.05 before issue 18's twenty-fifth session, which a target nobody tuned "
-        "for, moments (30, 20, 45), i.e. 0.42 from the sphere, left over-confident: rate "
-        "block NEES/dof 1.97 -> 1.2 at 0.15 over runs 0-5, docs/results/consistency.md). Wider lets the first, noisy epochs move the estimate beyond the EKF's "
-        "linear reach: on rendered images (chang2021_close run 3) 0.3 ran to principal "
-        "ratios 1 / 0.55 / 0.06 and 5 deg of attitude error, 0.1 to 1 / 0.84 / 0.66 (truth "
+        "default). 'auto' (the default since issue 18's twenty-fifth session; 0.05 before): "
+        "0.15 where one epoch's features fix the attitude to within epoch_attitude_warn_deg "
+        "over the start window, else 0.05 (slam.StateSteps.inertia_sigma_at). Why: a target "
+        "nobody tuned for, moments (30, 20, 45), i.e. 0.42 from the sphere, was "
+        "over-confident under the 0.05 prior (chang_range15, 20 runs: NEES/dof 1.58, 1.17 at "
+        "0.15); where one epoch fixes the attitude only to several degrees the nutation the "
+        "inertia is learnt from is buried in the tracks' errors, and a wider prior lets them "
+        "move it far (the built-in chang2021 at 59 m on images, 15 deg per epoch: NEES/dof 128 "
+        "at 0.05, 1.6e3 at 0.1, 4.1e3 at 0.15, attitude 6.5 -> 31 deg). Earlier: on rendered "
+        "images (chang2021_close run 3, before the batch start) 0.3 ran to principal ratios "
+        "1 / 0.55 / 0.06 and 5 deg of attitude error, 0.1 to 1 / 0.84 / 0.66 (truth "
         "1 / 0.83 / 0.67) and 0.27 deg (NEES/dof 3.7), 0.05 to 1 / 0.82 / 0.66 and 0.26 deg "
         "(2.9); on point tracks chang_inertia (moments 0.29 from the sphere) converges from "
         "0.05 to 0.3 (docs/results/consistency.md)",
     )
+
+    @field_validator("inertia_sigma")
+    @classmethod
+    def _inertia_sigma(cls, v: float | str) -> float | str:
+        if not isinstance(v, str) and not (np.isfinite(v) and v > 0):
+            raise ValueError("inertia_sigma: finite and > 0, or 'auto'")
+        return v
+
     inertia_asymmetry: float = Field(
         0.3,
         ge=0,
