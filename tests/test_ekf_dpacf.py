@@ -696,8 +696,18 @@ def test_frame_measurement_and_its_jacobian():
         # at 5e-5 rad, asking for a DPACF frame within 0.001 rad, run 12 starts and run 0
         # never does (its frame's 1-sigma stays above 1.38e-3 rad; with the default 0.05
         # rad every run starts by 22.5 s). Was 0.005 rad with runs 6 and 15 before the
-        # least squares' covariance lost its (2h+1) allowance (stereo_points.gls)
-        (True, {"max_dpacf_sigma_rad": 0.001}, 5e-5, 100.0, [12, 0], "never"),
+        # least squares' covariance lost its (2h+1) allowance (stereo_points.gls). The
+        # least squares torque-free, as when these runs were chosen: with the built-in's
+        # disturbed truth its default ('auto', twenty-fifth session) allows the torque, and
+        # then run 12 never gets there either
+        (
+            True,
+            {"max_dpacf_sigma_rad": 0.001, "frontend": {"ls_torque_rad2_s4": 0.0}},
+            5e-5,
+            100.0,
+            [12, 0],
+            "never",
+        ),
     ],
 )
 def test_compiled_engine_equals_numpy_engine(use_dpacf, tuning, noise, duration, runs, expect):
@@ -1488,7 +1498,9 @@ def test_iterated_update_after_a_long_occlusion():
 
     for engine in ("compiled", "numpy"):
         assert position_nees(engine) < 3.0
-        assert position_nees(engine, iterate_max=0) > 50.0
+        # without the iteration, and without the restart on the lost-track alarm that such
+        # a run now raises (restart_on_alarm, twenty-fifth session: 9.9 with it)
+        assert position_nees(engine, iterate_max=0, restart_on_alarm=False) > 50.0
 
 
 def test_iterated_update_is_second_order_in_the_linearisation_point():
