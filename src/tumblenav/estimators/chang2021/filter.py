@@ -108,7 +108,8 @@ def rate_process_noise(
     q = q_dist
     if tun.inertia == "sphere":
         w_ti = x[X_RATE] + rot.quat_to_matrix(x[X_ATT]) @ omega_LI_L(n)
-        q += 2.0 * tun.inertia_asymmetry**2 * float(np.linalg.norm(w_ti)) ** 3 / 27.0
+        # a new value, not in place: q_dist may be a cached (3, 3) array
+        q = q + 2.0 * tun.inertia_asymmetry**2 * float(np.linalg.norm(w_ti)) ** 3 / 27.0
     return q
 
 

@@ -231,19 +231,23 @@ def run_filter(
     # counted in ``reinitialised`` and the epochs of each restart in ``reinit_epochs``
     reinit_at: list[list[int]] = [[] for _ in range(B)]
     started = init.k0.copy()  # each run's last start (-1: none)
+    # runs whose alarm has not been tested since their last start (a run whose alarm fired
+    # and that found no new start keeps what it had and is not tested again)
+    check = started >= 0
     for _ in range(MAX_REINITS):
         k_lost = np.full(B, -1)  # the epoch after which each lost run starts again
         for b in np.flatnonzero(diverged):
             fin = np.isfinite(out_x[b, :, 0])
             k_lost[b] = n - int(np.argmax(fin[::-1])) if fin.any() else 0
         if use_dpacf and tun.restart_on_alarm:
-            for b in np.flatnonzero(~diverged & (started >= 0)):
+            for b in np.flatnonzero(check & ~diverged):
                 since = np.arange(n) >= started[b]  # the windows after the last start only
                 alarm = nis_alarm(
                     fe.t, np.where(since, nis[b], 0.0), np.where(since, nis_dof[b], 0)
                 )
                 if alarm.any():
                     k_lost[b] = int(np.argmax(alarm)) + 1
+        check[:] = False
         lost = np.flatnonzero(k_lost >= 0)
         if not len(lost):
             break
@@ -269,9 +273,7 @@ def run_filter(
             diverged[b] = r["diverged"][j]
             reinit_at[b].append(k)
             started[b] = k
-        # runs whose alarm fired and that found no new start keep what they had (their alarm
-        # is not tested again)
-        started[lost[~go]] = -1
+            check[b] = True
     out = pack()
     out["reinit_epochs"] = reinit_at
     return out

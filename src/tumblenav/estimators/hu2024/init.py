@@ -332,12 +332,10 @@ def template_features_cov(
         sel = (3 * idx[:, None] + np.arange(3)).ravel()
         for i in np.flatnonzero(tmpl):
             A[3 * i : 3 * i + 3, sel] = S
-    F = A @ cov_fit @ A.T
-    t3 = np.repeat(tmpl, 3)
     common = TEMPLATE_VAR_M2 / max(len(idx), 1)  # the fitted templates' mean, in c
-    F += np.where(t3[:, None] & t3[None], np.kron(np.ones((N, N)), common * np.eye(3)), 0.0)
     var = np.where(tmpl, TEMPLATE_VAR_M2, np.where(kn, 0.0, unseen_sigma_m**2))
-    return F + np.kron(np.diag(var), np.eye(3))
+    own = common * np.outer(tmpl, tmpl) + np.diag(var)  # per feature pair, each axis alike
+    return A @ cov_fit @ A.T + np.kron(own, np.eye(3))
 
 
 def pose_feature_sensitivity(
